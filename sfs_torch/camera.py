@@ -1,0 +1,118 @@
+"""Camera conventions: the pixel grid and the perspective normal rotation (paper Sec. 8).
+
+Camera frame (SPEC): x to the right, y up, z towards the viewer. Pixel row ``i`` and
+column ``j`` sit at ``u = j + 0.5 - cx`` and ``v = cy - (i + 0.5)``; the default
+principal point is the image centre ``(W / 2, H / 2)``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Sequence, Tuple
+
+import torch
+from torch import Tensor
+
+__all__ = ["CameraConfig", "pixel_grid", "perspective_rotation", "rotate_normals_to_camera", "centroid_rotation"]
+
+
+@dataclass
+class CameraConfig:
+    """Pinhole camera; ``focal=None`` means orthographic projection.
+
+    Attributes:
+        focal: focal length in pixels, or ``None`` for an orthographic camera.
+        principal_point: ``(cx, cy)`` in pixels; ``None`` for the image centre.
+    """
+
+    focal: Optional[float] = None
+    principal_point: Optional[Tuple[float, float]] = None
+
+
+def pixel_grid(
+    height: int,
+    width: int,
+    principal_point: Optional[Sequence[float]] = None,
+    *,
+    device: Optional[torch.device] = None,
+    dtype: torch.dtype = torch.float32,
+) -> Tensor:
+    """Image-plane coordinates ``(u, v)`` of every pixel centre.
+
+    Args:
+        height, width: image size.
+        principal_point: ``(cx, cy)`` in pixels; default ``(width / 2, height / 2)``.
+
+    Returns:
+        :math:`(2, H, W)` tensor: ``u`` (right) and ``v`` (up) in pixels.
+    """
+    cx, cy = (width / 2.0, height / 2.0) if principal_point is None else (float(principal_point[0]), float(principal_point[1]))
+    j = torch.arange(width, device=device, dtype=dtype) + 0.5 - cx
+    i = cy - (torch.arange(height, device=device, dtype=dtype) + 0.5)
+    v, u = torch.meshgrid(i, j, indexing="ij")
+    return torch.stack([u, v])
+
+
+def perspective_rotation(u: Tensor, v: Tensor, focal: float) -> Tensor:
+    r"""Rotation :math:`R_d` of Sec. 8 for image-plane points ``(u, v)``.
+
+    It maps ``(0, 0, 1)`` exactly to the unit direction from the surface point towards
+    the camera centre, ``(-u, -v, f) / |(-u, -v, f)|``, and never rolls the image: a
+    horizontal vector stays horizontal. It rotates first about the x axis by ``theta``
+    and then about the y axis by ``phi = atan(u / f)``. The paper writes
+    ``theta = atan(v / f)``; we use the exact ``theta = atan(v / sqrt(u^2 + f^2))``,
+    which agrees with it to first order in the field of view and makes the mapping
+    exact off the image axes too.
+
+    Args:
+        u, v: image-plane coordinates in pixels, any matching shape ``(*)``.
+        focal: focal length in pixels.
+
+    Returns:
+        rotation matrices of shape :math:`(*, 3, 3)`.
+    """
+    if not focal > 0:
+        raise ValueError(f"focal must be a positive focal length in pixels, got {focal}")
+    phi = torch.atan(u / focal)
+    theta = torch.atan(v / torch.sqrt(u * u + focal * focal))
+    cp, sp, ct, st = torch.cos(phi), torch.sin(phi), torch.cos(theta), torch.sin(theta)
+    zero, one = torch.zeros_like(u), torch.ones_like(u)
+    rot_y = torch.stack([cp, zero, -sp, zero, one, zero, sp, zero, cp], -1).unflatten(-1, (3, 3))
+    rot_x = torch.stack([one, zero, zero, zero, ct, -st, zero, st, ct], -1).unflatten(-1, (3, 3))
+    return rot_y @ rot_x
+
+
+def rotate_normals_to_camera(
+    normals: Tensor, focal: float, principal_point: Optional[Sequence[float]] = None
+) -> Tensor:
+    """Rotate orthographic-frame normals by each pixel's perspective rotation (Sec. 8).
+
+    Args:
+        normals: :math:`(B, 3, H, W)` normals predicted as if the camera were orthographic.
+        focal: focal length in pixels.
+        principal_point: ``(cx, cy)``; default image centre.
+
+    Returns:
+        :math:`(B, 3, H, W)` normals in the perspective camera frame; zero pixels stay zero.
+    """
+    _, _, h, w = normals.shape
+    uv = pixel_grid(h, w, principal_point, device=normals.device, dtype=normals.dtype)
+    rot = perspective_rotation(uv[0], uv[1], focal)  # (H, W, 3, 3)
+    return torch.einsum("hwij,bjhw->bihw", rot, normals)
+
+
+def centroid_rotation(mask: Tensor, focal: float, principal_point: Optional[Sequence[float]] = None) -> Tensor:
+    """The single rotation of Sec. 8 for each object's centroid on the image plane.
+
+    Args:
+        mask: :math:`(B, 1, H, W)` bool.
+
+    Returns:
+        :math:`(B, 3, 3)` rotations.
+    """
+    _, _, h, w = mask.shape
+    uv = pixel_grid(h, w, principal_point, device=mask.device, dtype=torch.float32)
+    m = mask[:, 0].float()
+    count = m.flatten(1).sum(1).clamp_min(1)
+    u = (uv[0] * m).flatten(1).sum(1) / count
+    v = (uv[1] * m).flatten(1).sum(1) / count
+    return perspective_rotation(u, v, focal)
