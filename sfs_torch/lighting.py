@@ -1,0 +1,348 @@
+r"""Second-order spherical-harmonic (SH) lighting: basis, shading, fitting, conversions.
+
+A lighting (the paper's reflectance map) is a tensor ``(B, 3, 9)``: 9 real SH
+coefficients per colour channel, defined so that the rendered linear intensity of a
+surface with unit normal ``n = (x, y, z)`` in the camera frame is
+
+.. math:: I_c(n) = \sum_k L[c, k] \, Y_k(n),
+
+with albedo and the Lambertian convolution folded into ``L`` (SPEC). Basis order:
+``Y0 = 0.282095``, ``Y1 = 0.488603 y``, ``Y2 = 0.488603 z``, ``Y3 = 0.488603 x``,
+``Y4 = 1.092548 xy``, ``Y5 = 1.092548 yz``, ``Y6 = 0.315392 (3z^2 - 1)``,
+``Y7 = 1.092548 xz``, ``Y8 = 0.546274 (x^2 - y^2)``.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from functools import lru_cache
+from importlib import resources
+from typing import Dict, Optional
+
+import torch
+from torch import Tensor, nn
+
+from ._checks import check_finite, check_mask, check_same_size, check_shape
+
+__all__ = [
+    "SH_CONSTANTS",
+    "SphereNormals",
+    "SHRenderer",
+    "sh_basis",
+    "sh_basis_vectors",
+    "render_sh",
+    "fit_sh",
+    "fit_sh_vectors",
+    "irradiance_to_sh",
+    "sh_to_matrix",
+    "matrix_to_sh",
+    "rotate_sh",
+    "sphere_normals",
+    "render_sphere",
+    "natural_lightings",
+]
+
+SH_CONSTANTS = (0.282095, 0.488603, 1.092548, 0.315392, 0.546274)
+_C0, _C1, _C2, _C3, _C4 = SH_CONSTANTS
+# Lambertian convolution A_l / pi for bands l = 0, 1, 2 (Ramamoorthi & Hanrahan 2001).
+_BAND_OF_COEFFICIENT = (0, 1, 1, 1, 2, 2, 2, 2, 2)
+_LAMBERT_OVER_PI = (1.0, 2.0 / 3.0, 0.25)
+
+
+def sh_basis_vectors(n: Tensor) -> Tensor:
+    """The 9 SH basis functions of unit vectors.
+
+    Args:
+        n: directions, :math:`(*, 3)`.
+
+    Returns:
+        :math:`(*, 9)` basis values in SPEC order.
+    """
+    x, y, z = n.unbind(-1)
+    return torch.stack(
+        [
+            torch.full_like(x, _C0),
+            _C1 * y,
+            _C1 * z,
+            _C1 * x,
+            _C2 * x * y,
+            _C2 * y * z,
+            _C3 * (3 * z * z - 1),
+            _C2 * x * z,
+            _C4 * (x * x - y * y),
+        ],
+        -1,
+    )
+
+
+def sh_basis(normals: Tensor) -> Tensor:
+    """The 9 SH basis functions of a normal map.
+
+    Args:
+        normals: camera-frame unit normals, :math:`(B, 3, H, W)`.
+
+    Returns:
+        :math:`(B, 9, H, W)` basis images.
+    """
+    check_shape(normals, "normals", "B 3 H W")
+    return sh_basis_vectors(normals.movedim(1, -1)).movedim(-1, 1)
+
+
+def render_sh(normals: Tensor, sh: Tensor) -> Tensor:
+    """Shade a normal map with SH lighting.
+
+    Pixels whose normal is zero (outside the object) receive the lighting's constant
+    terms; multiply by the mask where a black background is wanted.
+
+    Args:
+        normals: camera-frame unit normals, :math:`(B, 3, H, W)`.
+        sh: SH coefficients, :math:`(B, 3, 9)` (or :math:`(3, 9)`, shared by the batch).
+
+    Returns:
+        linear RGB, :math:`(B, 3, H, W)`, unclipped.
+
+    Example:
+        >>> n = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
+        >>> sh = torch.zeros(1, 3, 9); sh[:, :, 0] = 1 / 0.282095
+        >>> render_sh(n, sh).flatten().tolist()
+        [1.0, 1.0, 1.0]
+    """
+    check_shape(normals, "normals", "B 3 H W")
+    if sh.ndim == 2:
+        sh = sh.expand(normals.shape[0], -1, -1)
+    check_shape(sh, "sh", "B 3 9")
+    if sh.shape[0] != normals.shape[0]:
+        raise ValueError(f"sh must have batch size {normals.shape[0]} like normals, got {tuple(sh.shape)}")
+    return torch.einsum("bck,bkhw->bchw", sh.to(normals.dtype), sh_basis(normals))
+
+
+def fit_sh_vectors(normals: Tensor, colours: Tensor, weights: Optional[Tensor] = None, ridge: float = 1e-9) -> Tensor:
+    """Weighted least-squares SH fit to colour samples, in closed form.
+
+    Args:
+        normals: unit directions, :math:`(B, N, 3)`.
+        colours: observed linear RGB, :math:`(B, N, 3)`.
+        weights: non-negative sample weights, :math:`(B, N)`; 0 drops a sample.
+        ridge: Tikhonov term relative to the mean diagonal of the normal equations,
+            which keeps the solve finite when the normals do not span all 9 functions.
+
+    Returns:
+        :math:`(B, 3, 9)` coefficients.
+    """
+    # Float64 normal equations: on the visible hemisphere alone the constant, z and z^2
+    # terms are nearly collinear, and float32 loses ~1e-3 of the coefficients.
+    out_dtype = colours.dtype
+    basis = sh_basis_vectors(normals.double())  # (B, N, 9)
+    colours = colours.double()
+    weighted = basis if weights is None else basis * weights.double().unsqueeze(-1)
+    gram = weighted.transpose(1, 2) @ basis  # (B, 9, 9)
+    rhs = weighted.transpose(1, 2) @ colours  # (B, 9, 3)
+    scale = gram.diagonal(dim1=1, dim2=2).mean(-1).clamp_min(torch.finfo(gram.dtype).tiny)
+    eye = torch.eye(9, dtype=gram.dtype, device=gram.device)
+    gram = gram + ridge * scale[:, None, None] * eye
+    return torch.linalg.solve(gram, rhs).transpose(1, 2).to(out_dtype)
+
+
+def fit_sh(normals: Tensor, colours: Tensor, mask: Tensor, weights: Optional[Tensor] = None) -> Tensor:
+    """Fit SH lighting to an image of known normals (closed-form least squares).
+
+    Args:
+        normals: camera-frame unit normals, :math:`(B, 3, H, W)`.
+        colours: linear RGB, :math:`(B, 3, H, W)`.
+        mask: pixels to use, :math:`(B, 1, H, W)` bool.
+        weights: optional per-pixel weights, :math:`(B, 1, H, W)`, non-negative.
+
+    Returns:
+        :math:`(B, 3, 9)` SH coefficients minimising the (weighted) squared shading error.
+
+    Raises:
+        ValueError: shapes disagree, or inputs hold NaN/inf.
+    """
+    check_shape(normals, "normals", "B 3 H W")
+    check_shape(colours, "colours", "B 3 H W")
+    check_same_size(normals, "normals", colours, "colours")
+    mask = check_mask(mask, "mask", allow_full=True)
+    check_same_size(normals, "normals", mask, "mask")
+    check_finite(normals, "normals")
+    check_finite(colours, "colours")
+    w = mask.to(normals.dtype)
+    if weights is not None:
+        check_shape(weights, "weights", "B 1 H W")
+        check_same_size(normals, "normals", weights, "weights")
+        if bool((weights < 0).any()):
+            raise ValueError("weights must be non-negative")
+        w = w * weights.to(normals.dtype)
+    return fit_sh_vectors(
+        normals.flatten(2).transpose(1, 2), colours.to(normals.dtype).flatten(2).transpose(1, 2), w.flatten(1)
+    )
+
+
+def irradiance_to_sh(coefficients: Tensor, albedo: float = 1.0) -> Tensor:
+    """Convert Ramamoorthi & Hanrahan's radiance coefficients ``L_lm`` to SPEC lighting.
+
+    ``L[c, k] = albedo * A_l / pi * L_lm`` with ``A_0 = pi, A_1 = 2 pi / 3, A_2 = pi / 4``,
+    so that rendering gives ``albedo * E(n) / pi`` with R&H's irradiance ``E``.
+
+    Args:
+        coefficients: :math:`(*, 3, 9)` ``L_lm`` in the order L00, L1-1, L10, L11,
+            L2-2, L2-1, L20, L21, L22.
+
+    Returns:
+        :math:`(*, 3, 9)` SH lighting.
+    """
+    factors = torch.tensor(
+        [_LAMBERT_OVER_PI[band] for band in _BAND_OF_COEFFICIENT], dtype=coefficients.dtype, device=coefficients.device
+    )
+    return albedo * coefficients * factors
+
+
+def sh_to_matrix(sh: Tensor) -> Tensor:
+    """The 4x4 matrix form ``I_c = n^T M_c n`` of a lighting (``n`` homogeneous).
+
+    Args:
+        sh: :math:`(*, 3, 9)`.
+
+    Returns:
+        :math:`(*, 3, 4, 4)` symmetric matrices.
+    """
+    s = sh.unbind(-1)
+    zero = torch.zeros_like(s[0])
+    rows = [
+        [_C4 * s[8], _C2 * s[4] / 2, _C2 * s[7] / 2, _C1 * s[3] / 2],
+        [_C2 * s[4] / 2, -_C4 * s[8], _C2 * s[5] / 2, _C1 * s[1] / 2],
+        [_C2 * s[7] / 2, _C2 * s[5] / 2, 3 * _C3 * s[6] + zero, _C1 * s[2] / 2],
+        [_C1 * s[3] / 2, _C1 * s[1] / 2, _C1 * s[2] / 2, _C0 * s[0] - _C3 * s[6]],
+    ]
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+
+def matrix_to_sh(matrix: Tensor) -> Tensor:
+    """Inverse of :func:`sh_to_matrix` for any (not necessarily symmetric) 4x4 ``M``.
+
+    On unit normals ``n^T M n`` only depends on the symmetric part of ``M`` and on
+    ``M00 + M11 + M22 - M33`` up to the identity ``x^2 + y^2 + z^2 = 1``; every such
+    matrix has exactly one SH equivalent.
+
+    Args:
+        matrix: :math:`(*, 3, 4, 4)`.
+
+    Returns:
+        :math:`(*, 3, 9)`.
+    """
+    m = (matrix + matrix.transpose(-1, -2)) / 2
+    diag_xy = (m[..., 0, 0] + m[..., 1, 1]) / 2
+    l8 = (m[..., 0, 0] - m[..., 1, 1]) / (2 * _C4)
+    l6 = (m[..., 2, 2] - diag_xy) / (3 * _C3)
+    l0 = (m[..., 3, 3] + diag_xy + _C3 * l6) / _C0
+    return torch.stack(
+        [
+            l0,
+            2 * m[..., 1, 3] / _C1,
+            2 * m[..., 2, 3] / _C1,
+            2 * m[..., 0, 3] / _C1,
+            2 * m[..., 0, 1] / _C2,
+            2 * m[..., 1, 2] / _C2,
+            l6,
+            2 * m[..., 0, 2] / _C2,
+            l8,
+        ],
+        -1,
+    )
+
+
+def rotate_sh(sh: Tensor, rotation: Tensor) -> Tensor:
+    """Rotate a lighting: the result lights ``R n`` as the input lights ``n``.
+
+    Args:
+        sh: :math:`(B, 3, 9)` (or :math:`(3, 9)`).
+        rotation: :math:`(B, 3, 3)` (or :math:`(3, 3)`) rotation matrices.
+
+    Returns:
+        rotated lighting, same shape as ``sh`` broadcast with ``rotation``.
+    """
+    if rotation.shape[-2:] != (3, 3):
+        raise ValueError(f"rotation must have shape (3, 3) or (B, 3, 3), got {tuple(rotation.shape)}")
+    if sh.shape[-2:] != (3, 9):
+        raise ValueError(f"sh must have shape (3, 9) or (B, 3, 9), got {tuple(sh.shape)}")
+    rot4 = torch.zeros(*rotation.shape[:-2], 4, 4, dtype=sh.dtype, device=sh.device)
+    rot4[..., :3, :3] = rotation.to(sh.dtype)
+    rot4[..., 3, 3] = 1
+    rot4 = rot4.unsqueeze(-3)  # broadcast over colour channels
+    # I'(n') = I(R^T n') = n'^T (R M R^T) n'
+    return matrix_to_sh(rot4 @ sh_to_matrix(sh) @ rot4.transpose(-1, -2))
+
+
+@dataclass(frozen=True)
+class SphereNormals:
+    """Normals of a unit sphere seen by an orthographic camera.
+
+    Attributes:
+        normals: :math:`(1, 3, R, R)`, 0 outside the disk.
+        mask: :math:`(1, 1, R, R)` bool, pixel centres inside the unit disk.
+    """
+
+    normals: Tensor
+    mask: Tensor
+
+
+@lru_cache(maxsize=16)
+def _sphere_normals_cpu(resolution: int) -> SphereNormals:
+    coords = (torch.arange(resolution, dtype=torch.float64) + 0.5) / resolution * 2 - 1
+    y, x = torch.meshgrid(-coords, coords, indexing="ij")  # row 0 is the top: y up
+    r2 = x * x + y * y
+    mask = r2 < 1
+    z = torch.sqrt((1 - r2).clamp_min(0))
+    normals = torch.stack([x, y, z]) * mask
+    return SphereNormals(normals[None].float(), mask[None, None])
+
+
+def sphere_normals(resolution: int = 64, *, device: Optional[torch.device] = None) -> SphereNormals:
+    """Visible-hemisphere normals of an orthographic sphere image (the lMSE grid)."""
+    if resolution < 2:
+        raise ValueError(f"resolution must be at least 2, got {resolution}")
+    s = _sphere_normals_cpu(int(resolution))
+    return SphereNormals(s.normals.to(device), s.mask.to(device))
+
+
+def render_sphere(sh: Tensor, resolution: int = 64) -> Tensor:
+    """Render lightings on a sphere: the reflectance-map picture of the paper's Fig. 6.
+
+    Args:
+        sh: :math:`(B, 3, 9)` (or :math:`(3, 9)`).
+        resolution: image size in pixels.
+
+    Returns:
+        :math:`(B, 3, R, R)` (or :math:`(3, R, R)`) linear RGB, 0 outside the disk.
+    """
+    single = sh.ndim == 2
+    sh_b = sh[None] if single else sh
+    check_shape(sh_b, "sh", "B 3 9")
+    sphere = sphere_normals(resolution, device=sh.device)
+    normals = sphere.normals.to(sh.dtype).expand(sh_b.shape[0], -1, -1, -1)
+    image = render_sh(normals, sh_b) * sphere.mask
+    return image[0] if single else image
+
+
+def natural_lightings(albedo: float = 1.0) -> Dict[str, Tensor]:
+    """Ramamoorthi & Hanrahan's light probes as SPEC lightings, ``{name: (3, 9)}``.
+
+    These are natural, coloured illuminations (Debevec's probes); ``albedo`` scales
+    them (their raw intensities render to roughly [0, 1.5]).
+    """
+    data = json.loads(resources.files("sfs_torch").joinpath("data/rh_probes.json").read_text())
+    return {
+        name: irradiance_to_sh(torch.tensor(coefs, dtype=torch.float32).T.contiguous(), albedo)
+        for name, coefs in data["probes"].items()
+    }
+
+
+class SHRenderer(nn.Module):
+    """Shade normal maps with a fixed SH lighting (module form of :func:`render_sh`)."""
+
+    def __init__(self, sh: Tensor):
+        super().__init__()
+        self.register_buffer("sh", sh)
+
+    def forward(self, normals: Tensor) -> Tensor:
+        return render_sh(normals, self.sh)
+

@@ -1,0 +1,227 @@
+import math
+
+import pytest
+import torch
+
+from sfs_torch.lighting import (
+    SHRenderer,
+    fit_sh,
+    irradiance_to_sh,
+    matrix_to_sh,
+    natural_lightings,
+    render_sh,
+    render_sphere,
+    rotate_sh,
+    sh_basis,
+    sh_to_matrix,
+    sphere_normals,
+)
+
+
+def random_normals(b, h, w, dtype=torch.float64, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    n = torch.randn(b, 3, h, w, generator=g, dtype=dtype)
+    return n / n.norm(dim=1, keepdim=True)
+
+
+def random_sh(b, dtype=torch.float64, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    return torch.randn(b, 3, 9, generator=g, dtype=dtype)
+
+
+def random_rotation(seed=2, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    q, r = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=dtype))
+    q = q * torch.sign(torch.diagonal(r))
+    return q if torch.det(q) > 0 else -q
+
+
+class TestSHBasis:
+    def test_orthonormal_on_sphere(self):
+        # Monte-Carlo-free check: a fine Fibonacci sphere integrates products exactly enough.
+        n = 200_000
+        i = torch.arange(n, dtype=torch.float64) + 0.5
+        z = 1 - 2 * i / n
+        phi = math.pi * (1 + 5**0.5) * i
+        r = torch.sqrt(1 - z * z)
+        dirs = torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], 0).view(1, 3, 1, n)
+        basis = sh_basis(dirs)[0, :, 0]  # (9, n)
+        gram = basis @ basis.T * (4 * math.pi / n)
+        assert torch.allclose(gram, torch.eye(9, dtype=torch.float64), atol=2e-5)
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="normals"):
+            sh_basis(torch.zeros(1, 2, 4, 4))
+
+
+class TestRenderSH:
+    def test_cardinality(self, device, dtype):
+        n = random_normals(2, 5, 6, dtype).to(device)
+        out = render_sh(n, random_sh(2, dtype).to(device))
+        assert out.shape == (2, 3, 5, 6) and out.dtype == dtype and out.device.type == device.type
+
+    def test_constant_light(self, device, dtype):
+        sh = torch.zeros(1, 3, 9, dtype=dtype, device=device)
+        sh[0, :, 0] = torch.tensor([0.2, 0.5, 0.9]) / 0.282095
+        out = render_sh(random_normals(1, 4, 4, dtype).to(device), sh)
+        assert torch.allclose(out[0, :, 0, 0], torch.tensor([0.2, 0.5, 0.9], dtype=dtype, device=device), atol=1e-6)
+
+    def test_shared_lighting_broadcasts(self):
+        n = random_normals(3, 4, 4)
+        sh = random_sh(1)
+        assert torch.allclose(render_sh(n, sh[0]), render_sh(n, sh.expand(3, -1, -1)))
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="sh"):
+            render_sh(random_normals(1, 4, 4), torch.zeros(1, 3, 4))
+        with pytest.raises(ValueError, match="batch size"):
+            render_sh(random_normals(2, 4, 4), torch.zeros(3, 3, 9))
+
+    def test_gradcheck(self):
+        n = random_normals(1, 3, 3).requires_grad_()
+        sh = random_sh(1).requires_grad_()
+        assert torch.autograd.gradcheck(render_sh, (n, sh))
+
+    def test_module(self):
+        sh = random_sh(2)
+        n = random_normals(2, 4, 4)
+        assert torch.equal(SHRenderer(sh)(n), render_sh(n, sh))
+
+
+class TestFitSH:
+    def test_round_trip(self, device):
+        sh = random_sh(2, torch.float32).to(device)
+        n = random_normals(2, 32, 32, torch.float32).to(device)
+        mask = torch.ones(2, 1, 32, 32, dtype=torch.bool, device=device)
+        fitted = fit_sh(n, render_sh(n, sh), mask)
+        assert (fitted - sh).abs().max() < 1e-5
+
+    def test_hemisphere_round_trip(self):
+        # The visible hemisphere alone determines all 9 coefficients.
+        sphere = sphere_normals(64)
+        sh = random_sh(1, torch.float32)
+        image = render_sh(sphere.normals, sh)
+        assert (fit_sh(sphere.normals, image, sphere.mask) - sh).abs().max() < 1e-4
+
+    def test_mask_excludes_outliers(self):
+        sh = random_sh(1)
+        n = random_normals(1, 16, 16)
+        image = render_sh(n, sh)
+        mask = torch.ones(1, 1, 16, 16, dtype=torch.bool)
+        image[..., :2, :] = 100.0
+        mask[..., :2, :] = False
+        assert (fit_sh(n, image, mask) - sh).abs().max() < 1e-8
+
+    def test_weights_are_least_squares(self):
+        n = random_normals(1, 8, 8)
+        colours = torch.rand(1, 3, 8, 8, dtype=torch.float64)
+        weights = torch.rand(1, 1, 8, 8, dtype=torch.float64)
+        mask = torch.ones(1, 1, 8, 8, dtype=torch.bool)
+        fitted = fit_sh(n, colours, mask, weights)
+        a = sh_basis(n)[0].flatten(1).T  # (64, 9)
+        w = weights.flatten().sqrt()[:, None]
+        ref = torch.linalg.lstsq(a * w, colours[0].flatten(1).T * w).solution.T
+        assert torch.allclose(fitted[0], ref, atol=1e-7)
+
+    def test_gradcheck(self):
+        n = random_normals(1, 4, 4).requires_grad_()
+        colours = torch.rand(1, 3, 4, 4, dtype=torch.float64, requires_grad=True)
+        mask = torch.ones(1, 1, 4, 4, dtype=torch.bool)
+        assert torch.autograd.gradcheck(lambda a, b: fit_sh(a, b, mask), (n, colours))
+
+    def test_exception(self):
+        n = random_normals(1, 4, 4)
+        with pytest.raises(ValueError, match="mask"):
+            fit_sh(n, n, torch.ones(1, 1, 5, 4, dtype=torch.bool))
+        with pytest.raises(ValueError, match="mask is empty"):
+            fit_sh(n, n, torch.zeros(1, 1, 4, 4, dtype=torch.bool))
+        bad = n.clone()
+        bad[0, 0, 0, 0] = float("nan")
+        with pytest.raises(ValueError, match="colours contains 1 NaN"):
+            fit_sh(n, bad, torch.ones(1, 1, 4, 4, dtype=torch.bool))
+        with pytest.raises(ValueError, match="weights"):
+            fit_sh(n, n, torch.ones(1, 1, 4, 4, dtype=torch.bool), -torch.ones(1, 1, 4, 4, dtype=torch.float64))
+
+
+class TestConversions:
+    def test_ramamoorthi_hanrahan_formula(self):
+        c1, c2, c3, c4, c5 = 0.429043, 0.511664, 0.743125, 0.886227, 0.247708
+        g = torch.Generator().manual_seed(3)
+        lm = torch.randn(3, 9, generator=g, dtype=torch.float64)
+        n = random_normals(1, 10, 10)[0].flatten(1)  # (3, 100)
+        x, y, z = n
+        L00, L1m1, L10, L11, L2m2, L2m1, L20, L21, L22 = lm.unbind(-1)
+        expected = torch.stack(
+            [
+                c1 * L22[c] * (x * x - y * y) + c3 * L20[c] * z * z + c4 * L00[c] - c5 * L20[c]
+                + 2 * c1 * (L2m2[c] * x * y + L21[c] * x * z + L2m1[c] * y * z)
+                + 2 * c2 * (L11[c] * x + L1m1[c] * y + L10[c] * z)
+                for c in range(3)
+            ]
+        )  # irradiance E(n)
+        rendered = render_sh(n.view(1, 3, 10, 10), irradiance_to_sh(lm)[None])[0].flatten(1)
+        assert torch.allclose(rendered * math.pi, expected, atol=1e-5)
+
+    def test_matrix_form_equals_basis_form(self):
+        sh = random_sh(2)
+        n = random_normals(2, 6, 6)
+        m = sh_to_matrix(sh)  # (2, 3, 4, 4)
+        nh = torch.cat([n, torch.ones(2, 1, 6, 6, dtype=n.dtype)], 1)
+        quad = torch.einsum("bihw,bcij,bjhw->bchw", nh, m, nh)
+        assert torch.allclose(quad, render_sh(n, sh), atol=1e-12)
+        assert torch.allclose(m, m.transpose(-1, -2))
+
+    def test_matrix_round_trip(self):
+        sh = random_sh(4)
+        assert torch.allclose(matrix_to_sh(sh_to_matrix(sh)), sh, atol=1e-12)
+
+    def test_matrix_to_sh_accepts_any_equivalent_matrix(self):
+        # Adding t * diag(1, 1, 1, -1) changes nothing on unit normals.
+        sh = random_sh(1)
+        m = sh_to_matrix(sh) + 0.7 * torch.diag(torch.tensor([1.0, 1, 1, -1], dtype=torch.float64))
+        assert torch.allclose(matrix_to_sh(m), sh, atol=1e-12)
+
+
+class TestRotateSH:
+    def test_rotated_lighting_on_rotated_normals(self):
+        sh = random_sh(1)
+        rot = random_rotation()
+        n = random_normals(1, 7, 7)
+        rotated_n = torch.einsum("ij,bjhw->bihw", rot, n)
+        assert torch.allclose(render_sh(rotated_n, rotate_sh(sh, rot)), render_sh(n, sh), atol=1e-12)
+
+    def test_identity_and_inverse(self):
+        sh = random_sh(2)
+        rot = random_rotation(seed=5)
+        assert torch.allclose(rotate_sh(sh, torch.eye(3, dtype=sh.dtype)), sh, atol=1e-12)
+        assert torch.allclose(rotate_sh(rotate_sh(sh, rot), rot.T), sh, atol=1e-12)
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="rotation"):
+            rotate_sh(random_sh(1), torch.eye(4))
+
+
+class TestSphere:
+    def test_sphere_normals_are_unit_and_y_up(self):
+        s = sphere_normals(32)
+        norms = s.normals.norm(dim=1)[s.mask[:, 0]]
+        assert torch.allclose(norms, torch.ones_like(norms), atol=1e-6)
+        assert s.normals[0, 1, 2, 16] > 0.8 and s.normals[0, 1, 29, 16] < -0.8  # y up: top rows face up
+        assert s.normals[0, 0, 16, 30] > 0.8  # right columns face right
+
+    def test_render_sphere_lit_from_above(self):
+        sh = torch.zeros(3, 9)
+        sh[:, 0] = 0.5 / 0.282095
+        sh[:, 1] = 0.5 / 0.488603  # light from +y
+        img = render_sphere(sh, 32)
+        assert img.shape == (3, 32, 32)
+        # 0.5 + 0.5 y: y = 0.78 three rows from the top, -0.78 three rows from the bottom
+        assert img[0, 3, 16] == pytest.approx(0.5 + 0.5 * 0.78125, abs=1e-5)
+        assert img[0, 28, 16] == pytest.approx(0.5 - 0.5 * 0.78125, abs=1e-5) and img[0, 0, 0] == 0
+
+    def test_natural_lightings(self):
+        lights = natural_lightings()
+        assert len(lights) == 7 and lights["grace_cathedral"].shape == (3, 9)
+        # R&H: Grace Cathedral L00 red is 0.79, rendered irradiance constant term c4 * L00 / pi.
+        assert lights["grace_cathedral"][0, 0] == pytest.approx(0.79)
+        assert lights["grace_cathedral"][0, 1] == pytest.approx(0.39 * 2 / 3)
