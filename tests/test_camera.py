@@ -1,0 +1,60 @@
+import pytest
+import torch
+
+from sfs_torch.camera import centroid_rotation, perspective_rotation, pixel_grid, rotate_normals_to_camera
+
+
+class TestPixelGrid:
+    def test_convention(self):
+        uv = pixel_grid(4, 6)
+        # row 0, col 0 is the top-left pixel: left of centre (u < 0) and above it (v > 0)
+        assert uv[:, 0, 0].tolist() == [-2.5, 1.5]
+        assert uv[:, 3, 5].tolist() == [2.5, -1.5]
+
+    def test_principal_point(self):
+        uv = pixel_grid(3, 3, principal_point=(0.0, 0.0))
+        assert uv[:, 0, 0].tolist() == [0.5, -0.5]
+
+
+class TestPerspectiveRotation:
+    def test_maps_optical_axis_to_camera_direction(self, dtype):
+        g = torch.Generator().manual_seed(0)
+        u = torch.randn(50, generator=g, dtype=dtype) * 300
+        v = torch.randn(50, generator=g, dtype=dtype) * 300
+        f = 500.0
+        rot = perspective_rotation(u, v, f)
+        d = rot @ torch.tensor([0, 0, 1], dtype=dtype)
+        target = torch.stack([-u, -v, torch.full_like(u, f)], -1)
+        target = target / target.norm(dim=-1, keepdim=True)
+        assert torch.allclose(d, target, atol=1e-6)
+        assert torch.allclose(rot @ rot.transpose(-1, -2), torch.eye(3, dtype=dtype).expand(50, 3, 3), atol=1e-6)
+        assert torch.allclose(torch.det(rot), torch.ones(50, dtype=dtype), atol=1e-6)
+
+    def test_keeps_horizontal_vectors_horizontal(self):
+        rot = perspective_rotation(torch.tensor([120.0]), torch.tensor([-80.0]), 400.0)
+        assert abs(float((rot @ torch.tensor([1.0, 0, 0]))[0, 1])) < 1e-7
+
+    def test_centre_is_identity(self):
+        assert torch.allclose(perspective_rotation(torch.zeros(1), torch.zeros(1), 100.0)[0], torch.eye(3))
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="focal"):
+            perspective_rotation(torch.zeros(1), torch.zeros(1), 0.0)
+
+
+class TestRotateNormalsToCamera:
+    def test_front_facing_normals_point_to_camera(self):
+        h, w, f = 8, 10, 20.0
+        n = torch.zeros(2, 3, h, w)
+        n[:, 2] = 1
+        out = rotate_normals_to_camera(n, f)
+        uv = pixel_grid(h, w)
+        target = torch.stack([-uv[0], -uv[1], torch.full_like(uv[0], f)])
+        target = target / target.norm(dim=0)
+        assert torch.allclose(out[1], target, atol=1e-6)
+
+    def test_centroid_rotation(self):
+        mask = torch.zeros(1, 1, 9, 9, dtype=torch.bool)
+        mask[0, 0, 0, 8] = True  # top-right pixel: u = 4, v = 4
+        rot = centroid_rotation(mask, 10.0)
+        assert torch.allclose(rot, perspective_rotation(torch.tensor([4.0]), torch.tensor([4.0]), 10.0))
