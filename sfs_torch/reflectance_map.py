@@ -1,0 +1,156 @@
+"""Reflectance-map (lighting) estimation from the silhouette alone (paper Sec. 7, 8).
+
+Every object pixel is mapped to a direction on the visible hemisphere by its
+silhouette features (relative distance to the contour and direction to the contour),
+which turns the image into a rough "calibration sphere". The colour of a set of
+hemisphere directions is the mean colour of the ``k`` pixels mapped nearest to it
+(Eq. 9), a low-pass that suppresses badly mapped pixels; 9 SH coefficients per channel
+are fitted to these colours in closed form, and finally the brightness and contrast
+of the estimate are matched to the image.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import torch
+from torch import Tensor
+
+from ._checks import check_finite, check_mask, check_same_size, check_shape
+from .camera import centroid_rotation
+from .lighting import fit_sh_vectors, rotate_sh, sh_basis_vectors
+from .silhouette import silhouette_distances
+
+__all__ = ["ReflectanceMapConfig", "sphere_mapping", "estimate_lighting", "hemisphere_directions"]
+
+PROFILES = ("sphere", "linear")
+
+
+@dataclass
+class ReflectanceMapConfig:
+    """Options of :func:`estimate_lighting`.
+
+    Attributes:
+        profile: out-of-plane profile of the pixel-to-sphere mapping. ``"sphere"`` is
+            Eq. 10 (``n_z = sqrt(1 - (1 - d_rel)^2)``, exact for a sphere); ``"linear"``
+            is Eq. 8 (polar angle ``arccos d_rel``, i.e. ``n_z = d_rel``).
+        n_directions: hemisphere directions whose colour is estimated (Eq. 9).
+        knn_fraction: ``k`` as a share of the object's pixel count (k grows with size).
+        min_k: smallest ``k``.
+        max_pixels: object pixels used at most (an even subsample beyond that), which
+            bounds the cost of the k-NN search on large images.
+        match_statistics: match the mean and standard deviation of the estimate's
+            shading to the image per channel (the paper's final step).
+    """
+
+    profile: str = "sphere"
+    n_directions: int = 400
+    knn_fraction: float = 0.01
+    min_k: int = 4
+    max_pixels: int = 20000
+    match_statistics: bool = True
+
+
+def hemisphere_directions(n: int, *, device=None, dtype=torch.float32) -> Tensor:
+    """``n`` nearly uniform directions on the visible hemisphere ``z > 0`` (Fibonacci lattice).
+
+    Returns:
+        :math:`(n, 3)` unit vectors.
+    """
+    i = torch.arange(n, device=device, dtype=torch.float64) + 0.5
+    z = 1 - i / n
+    phi = math.pi * (1 + math.sqrt(5)) * i
+    r = torch.sqrt(1 - z * z)
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1).to(dtype)
+
+
+def sphere_mapping(mask: Tensor, profile: str = "sphere") -> Tensor:
+    """Map each object pixel to the sphere by its silhouette features (Eq. 8 / Eq. 10).
+
+    Args:
+        mask: :math:`(B, 1, H, W)` bool.
+        profile: ``"sphere"`` (Eq. 10) or ``"linear"`` (Eq. 8).
+
+    Returns:
+        :math:`(B, 3, H, W)` unit directions in the orthographic camera frame, 0 outside.
+    """
+    if profile not in PROFILES:
+        raise ValueError(f"profile must be one of {PROFILES}, got {profile!r}")
+    mask = check_mask(mask)
+    dist = silhouette_distances(mask)
+    d_rel = dist.d_rel.clamp(0, 1)
+    nz = torch.sqrt(1 - (1 - d_rel) ** 2) if profile == "sphere" else d_rel
+    in_plane = torch.sqrt((1 - nz * nz).clamp_min(0))
+    n = torch.cat([in_plane * torch.cos(dist.beta), in_plane * torch.sin(dist.beta), nz], 1)
+    return n * mask
+
+
+def _knn_colours(directions: Tensor, pixel_dirs: Tensor, pixel_colours: Tensor, k: int, chunk: int = 128) -> Tensor:
+    """Mean colour of the ``k`` pixels mapped nearest to each direction (Eq. 9)."""
+    out = []
+    for start in range(0, directions.shape[0], chunk):
+        cos = directions[start : start + chunk] @ pixel_dirs.T  # nearest = largest cosine
+        idx = cos.topk(k, dim=1).indices
+        out.append(pixel_colours[idx].mean(1))
+    return torch.cat(out)
+
+
+def estimate_lighting(
+    image: Tensor,
+    mask: Tensor,
+    *,
+    focal: Optional[float] = None,
+    principal_point: Optional[Sequence[float]] = None,
+    config: Optional[ReflectanceMapConfig] = None,
+) -> Tensor:
+    """Estimate SH lighting from one image and its silhouette (paper Sec. 7; Sec. 8 with ``focal``).
+
+    Args:
+        image: linear RGB, :math:`(B, 3, H, W)`.
+        mask: object pixels, :math:`(B, 1, H, W)` bool.
+        focal: focal length in pixels; the hemisphere is then rotated by the rotation
+            for the object's centroid (Sec. 8).
+        principal_point: ``(cx, cy)``; default image centre.
+        config: options, see :class:`ReflectanceMapConfig`.
+
+    Returns:
+        :math:`(B, 3, 9)` SH lighting in the camera frame.
+    """
+    cfg = config or ReflectanceMapConfig()
+    check_shape(image, "image", "B 3 H W")
+    mask = check_mask(mask)
+    check_same_size(image, "image", mask, "mask")
+    check_finite(image, "image")
+    dirs_map = sphere_mapping(mask, cfg.profile).to(image.dtype)
+    hemisphere = hemisphere_directions(cfg.n_directions, device=image.device, dtype=image.dtype)
+    lightings = []
+    # One object at a time: object sizes differ, so k and the pixel sets do too.
+    for b in range(image.shape[0]):
+        m = mask[b, 0]
+        pixel_dirs = dirs_map[b].permute(1, 2, 0)[m]  # (N, 3)
+        pixel_colours = image[b].permute(1, 2, 0)[m]  # (N, 3)
+        if pixel_dirs.shape[0] > cfg.max_pixels:
+            keep = torch.linspace(0, pixel_dirs.shape[0] - 1, cfg.max_pixels, device=image.device).long()
+            pixel_dirs, pixel_colours = pixel_dirs[keep], pixel_colours[keep]
+        n_pixels = pixel_dirs.shape[0]
+        k = min(n_pixels, max(cfg.min_k, round(cfg.knn_fraction * n_pixels)))
+        colours = _knn_colours(hemisphere, pixel_dirs, pixel_colours, k)
+        sh = fit_sh_vectors(hemisphere[None], colours[None])[0]
+        if cfg.match_statistics:
+            sh = _match_statistics(sh, pixel_dirs, pixel_colours)
+        lightings.append(sh)
+    sh = torch.stack(lightings)
+    if focal is not None:
+        sh = rotate_sh(sh, centroid_rotation(mask, focal, principal_point).to(sh.dtype))
+    return sh
+
+
+def _match_statistics(sh: Tensor, pixel_dirs: Tensor, pixel_colours: Tensor) -> Tensor:
+    """Affinely adjust ``sh`` per channel so its shading of the mapped pixels has the image's mean and std."""
+    shading = sh_basis_vectors(pixel_dirs) @ sh.T  # (N, 3)
+    gain = pixel_colours.std(0) / shading.std(0).clamp_min(1e-8)
+    offset = pixel_colours.mean(0) - gain * shading.mean(0)
+    matched = sh * gain[:, None]
+    matched[:, 0] = matched[:, 0] + offset / sh_basis_vectors(pixel_dirs[:1])[0, 0]
+    return matched

@@ -1,0 +1,87 @@
+import pytest
+import torch
+
+from sfs_torch.camera import centroid_rotation
+from sfs_torch.lighting import natural_lightings, render_sh, rotate_sh
+from sfs_torch.metrics import lmse
+from sfs_torch.reflectance_map import ReflectanceMapConfig, estimate_lighting, hemisphere_directions, sphere_mapping
+
+
+def sphere_image(size=128, radius=50.0, centre=(0.0, 0.0)):
+    c = torch.arange(size, dtype=torch.float32) + 0.5 - size / 2
+    yy, xx = torch.meshgrid(c, c, indexing="ij")
+    x = (xx - centre[0]) / radius
+    y = -(yy + centre[1]) / radius
+    r2 = x * x + y * y
+    mask = (r2 < 1)[None, None]
+    normals = torch.stack([x, y, torch.sqrt((1 - r2).clamp_min(0))])[None] * mask
+    return normals, mask
+
+
+class TestHemisphereDirections:
+    def test_unit_and_visible(self):
+        d = hemisphere_directions(300)
+        assert torch.allclose(d.norm(dim=1), torch.ones(300), atol=1e-6)
+        assert bool((d[:, 2] > 0).all())
+        # nearly uniform: the mean direction of a uniform hemisphere is (0, 0, 1/2)
+        assert torch.allclose(d.mean(0), torch.tensor([0.0, 0.0, 0.5]), atol=0.01)
+
+
+class TestSphereMapping:
+    def test_disk_maps_to_sphere_normals(self):
+        normals, mask = sphere_image(160, 70.0)
+        mapped = sphere_mapping(mask, "sphere")
+        cos = (mapped * normals).sum(1)[mask[:, 0]]
+        assert torch.rad2deg(torch.acos(cos.clamp(-1, 1))).median() < 1.0
+
+    def test_exception(self):
+        _, mask = sphere_image(32, 10.0)
+        with pytest.raises(ValueError, match="profile"):
+            sphere_mapping(mask, "cube")
+
+
+class TestEstimateLighting:
+    @pytest.mark.parametrize("name", ["grace_cathedral", "campus_sunset", "uffizi_gallery"])
+    def test_sphere_recovers_lighting(self, name):
+        normals, mask = sphere_image()
+        sh = natural_lightings(0.7)[name][None]
+        image = (render_sh(normals, sh) * mask).clamp(0, 1)
+        est = estimate_lighting(image, mask)
+        assert float(lmse(est, sh)[0]) < 1e-4
+
+    def test_sphere_profile_beats_linear_on_a_sphere(self):
+        normals, mask = sphere_image()
+        sh = natural_lightings(0.7)["galileos_tomb"][None]
+        image = (render_sh(normals, sh) * mask).clamp(0, 1)
+        exact = lmse(estimate_lighting(image, mask), sh)
+        linear = lmse(estimate_lighting(image, mask, config=ReflectanceMapConfig(profile="linear")), sh)
+        assert float(exact[0]) < 0.1 * float(linear[0])
+
+    def test_batch_equals_single(self):
+        normals, mask = sphere_image(64, 25.0)
+        lights = natural_lightings(0.7)
+        sh = torch.stack([lights["grace_cathedral"], lights["eucalyptus_grove"]])
+        images = (render_sh(normals.expand(2, -1, -1, -1), sh) * mask).clamp(0, 1)
+        both = estimate_lighting(images, mask.expand(2, -1, -1, -1))
+        one = estimate_lighting(images[1:], mask)
+        assert torch.allclose(both[1], one[0], atol=1e-5)
+
+    def test_perspective_rotates_by_the_centroid(self):
+        normals, mask = sphere_image(96, 20.0, centre=(25.0, 10.0))
+        sh = natural_lightings(0.7)["st_peters_basilica"][None]
+        image = (render_sh(normals, sh) * mask).clamp(0, 1)
+        ortho = estimate_lighting(image, mask)
+        persp = estimate_lighting(image, mask, focal=80.0)
+        expected = rotate_sh(ortho, centroid_rotation(mask, 80.0))
+        assert torch.allclose(persp, expected, atol=1e-5)
+
+    def test_exception(self):
+        normals, mask = sphere_image(32, 10.0)
+        with pytest.raises(ValueError, match="image"):
+            estimate_lighting(torch.zeros(1, 2, 32, 32), mask)
+        with pytest.raises(ValueError, match="mask"):
+            estimate_lighting(torch.zeros(1, 3, 32, 32), torch.zeros(1, 1, 32, 32, dtype=torch.bool))
+        bad = torch.zeros(1, 3, 32, 32)
+        bad[0, 0, 16, 16] = float("inf")
+        with pytest.raises(ValueError, match="image contains"):
+            estimate_lighting(bad, mask)
