@@ -189,7 +189,9 @@ def lmse(est_sh: Tensor, gt_sh: Tensor, resolution: int = 64) -> Tensor:
     check_shape(est_b, "est_sh", "B 3 9")
     check_shape(gt_b, "gt_sh", "B 3 9")
     if est_b.shape[0] != gt_b.shape[0]:
-        raise ValueError(f"est_sh and gt_sh must have the same batch size, got {tuple(est_sh.shape)} and {tuple(gt_sh.shape)}")
+        raise ValueError(
+            f"est_sh and gt_sh must have the same batch size, got {tuple(est_sh.shape)} and {tuple(gt_sh.shape)}"
+        )
     check_finite(est_b, "est_sh")
     check_finite(gt_b, "gt_sh")
     if isinstance(resolution, bool) or not isinstance(resolution, int) or resolution < 2:

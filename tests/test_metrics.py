@@ -114,7 +114,8 @@ class TestNormalMetrics:
     def test_constant_tilt(self, device, dtype):
         gt = _random_normals((3, 8, 8), seed=10)
         est = _tilted(gt, 10.0)
-        res = normal_metrics(est.to(device, dtype), gt.to(device, dtype), torch.ones(8, 8, dtype=torch.bool, device=device))
+        mask = torch.ones(8, 8, dtype=torch.bool, device=device)
+        res = normal_metrics(est.to(device, dtype), gt.to(device, dtype), mask)
         assert res.median.shape == () and res.median.dtype == dtype
         tol = _tol(dtype)
         assert res.median.item() == pytest.approx(10.0, abs=tol)
