@@ -1,0 +1,318 @@
+import math
+
+import pytest
+import torch
+
+from sfs_torch.camera import pixel_grid
+from sfs_torch.integrability import (
+    IntegrabilityConfig,
+    Integrator,
+    Surface,
+    depth_to_mesh,
+    depth_to_normals,
+    integrate_convex,
+    integrate_normals,
+    mask_components,
+)
+
+F64 = torch.float64
+
+
+def _ortho_normals(p, q):
+    n = torch.stack([-p, -q, torch.ones_like(p)])
+    return n / n.norm(dim=0)
+
+
+def _grid(size, dtype=F64, device="cpu"):
+    return pixel_grid(size, size, device=device, dtype=dtype)
+
+
+def sphere_cap(size=64, dtype=F64, device="cpu"):
+    u, v = _grid(size, dtype, device)
+    r = 0.45 * size
+    mask = u * u + v * v < (0.85 * r) ** 2
+    z = torch.sqrt((r * r - u * u - v * v).clamp_min(0))
+    n = torch.stack([u, v, z]) / r
+    return z, torch.where(mask, n, 0.0), mask
+
+
+def gaussian_bump(size=64, dtype=F64, device="cpu"):
+    u, v = _grid(size, dtype, device)
+    z = 12.0 * torch.exp(-(u * u + v * v) / 200.0)
+    mask = (u.abs() < 0.44 * size) & (v.abs() < 0.41 * size)
+    n = _ortho_normals(-u / 100.0 * z, -v / 100.0 * z)
+    return z, torch.where(mask, n, 0.0), mask
+
+
+def crease(size=64, dtype=F64, device="cpu"):
+    # a roof ridge along u = 0 (between two pixel columns), tilted along v
+    u, v = _grid(size, dtype, device)
+    z = 20.0 - 0.6 * u.abs() + 0.2 * v
+    mask = (u.abs() < 0.44 * size) & (v.abs() < 0.41 * size)
+    n = _ortho_normals(-0.6 * torch.sign(u), torch.full_like(u, 0.2))
+    return z, torch.where(mask, n, 0.0), mask
+
+
+def perspective_sphere(size=64, focal=80.0, dtype=F64):
+    """Depth and normals of a sphere in front of a pinhole camera, rendered by ray casting."""
+    u, v = _grid(size, dtype)
+    ray = torch.stack([u / focal, v / focal, -torch.ones_like(u)])  # depth-1 points
+    c = torch.tensor([3.0, -2.0, -60.0], dtype=dtype)
+    rc, r2 = (ray * c[:, None, None]).sum(0), (ray * ray).sum(0)
+    disc = rc * rc - r2 * (c @ c - 20.0**2)
+    depth = (rc - disc.clamp_min(0).sqrt()) / r2
+    point = depth * ray
+    n = (point - c[:, None, None]) / 20.0
+    mask = (disc > 0) & ((n * -point).sum(0) / point.norm(dim=0) > 0.3)
+    return torch.where(mask, depth, 0.0), torch.where(mask, n, 0.0), mask
+
+
+def _batch(z, n, mask):
+    return z[None, None], n[None], mask[None, None]
+
+
+def depth_rmse(depth, z, mask):
+    """RMSE after removing the best offset on every connected component."""
+    labels = mask_components(mask)[0, 0]
+    err = (depth[0, 0] - z)[mask[0, 0]]
+    lab = labels[mask[0, 0]]
+    for k in lab.unique():
+        err[lab == k] -= err[lab == k].mean()
+    return float(err.pow(2).mean().sqrt())
+
+
+def angular_error(a, b, mask):
+    cos = (a * b).sum(1).clamp(-1, 1)[mask[:, 0]]
+    return torch.rad2deg(torch.acos(cos))
+
+
+class TestIntegrateL2:
+    @pytest.mark.parametrize("surface, tol", [(sphere_cap, 0.02), (gaussian_bump, 0.01), (crease, 1e-5)])
+    def test_exact_recovery(self, surface, tol):
+        z, n, mask = _batch(*surface())
+        out = integrate_normals(n, mask, tol=1e-10)
+        assert isinstance(out, Surface)
+        assert depth_rmse(out.depth, z[0, 0], mask) < tol
+        # zero mean on the mask, zero outside
+        assert abs(float(out.depth[mask].mean())) < 1e-9
+        assert float(out.depth[~mask].abs().max()) == 0.0
+        assert float(out.normals.abs().sum(1)[~mask[:, 0]].max()) == 0.0
+
+    def test_smoke(self, device, dtype):
+        z, n, mask = _batch(*gaussian_bump(48, dtype, device))
+        out = integrate_normals(n, mask)
+        assert out.depth.shape == (1, 1, 48, 48) and out.normals.shape == (1, 3, 48, 48)
+        assert out.depth.device.type == device.type and out.depth.dtype == dtype
+        assert depth_rmse(out.depth.double().cpu(), z[0, 0].double().cpu(), mask.cpu()) < 0.02
+
+    def test_cardinality(self):
+        z, n, mask = gaussian_bump(32)
+        single = integrate_normals(n, mask[None])
+        assert single.depth.shape == (1, 32, 32) and single.normals.shape == (3, 32, 32)
+        mirrored = n.flip(-1) * torch.tensor([-1.0, 1.0, 1.0], dtype=F64)[:, None, None]  # u -> -u
+        batch = integrate_normals(torch.stack([n, mirrored]), torch.stack([mask, mask.flip(-1)])[:, None])
+        assert batch.depth.shape == (2, 1, 32, 32)
+        torch.testing.assert_close(batch.depth[0], single.depth, atol=1e-6, rtol=0)
+        torch.testing.assert_close(batch.depth[1], single.depth.flip(-1), atol=1e-6, rtol=0)
+
+    def test_integrable_input_is_kept(self):
+        # a quadratic surface is reproduced exactly by the solver's edge rule and by
+        # depth_to_normals, so its refined normals must equal the input
+        u, v = _grid(64)
+        mask = u * u + v * v < 25.0**2
+        p, q = -0.02 * u + 0.02 * v, -0.02 * v + 0.02 * u
+        z = -0.01 * (u * u + v * v) + 0.02 * u * v
+        n = torch.where(mask, _ortho_normals(p, q), 0.0)[None]
+        out = integrate_normals(n, mask[None, None], tol=1e-12)
+        torch.testing.assert_close(out.normals, n, atol=1e-9, rtol=0)
+        assert depth_rmse(out.depth, z, mask[None, None]) < 1e-9
+
+    def test_holes_and_components(self):
+        z, n, _ = gaussian_bump(64)
+        u, v = _grid(64)
+        ring = ((u + 12) ** 2 + v * v < 14**2) & ((u + 12) ** 2 + v * v > 5**2)  # a disk with a hole
+        blob = (u - 16).abs().lt(8) & (v - 10).abs().lt(12)
+        dot = (u - 20).abs().lt(1) & (v + 20).abs().lt(1)  # a 2x2 island
+        mask = (ring | blob | dot)[None, None]
+        n = torch.where(mask[0], n, 0.0)[None]
+        labels = mask_components(mask)
+        assert labels[mask].unique().numel() == 3
+        out = integrate_normals(n, mask, tol=1e-10)
+        assert depth_rmse(out.depth, z, mask) < 0.01
+        for k in labels[mask].unique():
+            assert abs(float(out.depth[labels == k].mean())) < 1e-9
+
+    def test_weights(self):
+        # low confidence on corrupted pixels keeps them from bending their neighbours
+        z, n, mask = _batch(*gaussian_bump(48))
+        g = torch.Generator().manual_seed(1)
+        bad = (torch.rand(1, 1, 48, 48, generator=g, dtype=F64) < 0.05) & mask
+        corrupted = torch.where(bad, torch.tensor([0.6, 0.0, 0.8], dtype=F64)[:, None, None], n)
+        weights = torch.where(bad, 1e-4, 1.0).to(F64)
+        good = mask & ~bad
+        plain = integrate_normals(corrupted, mask).depth
+        weighted = integrate_normals(corrupted, mask, weights=weights, tol=1e-10).depth
+        assert depth_rmse(weighted, z[0, 0], good) < 0.02 < depth_rmse(plain, z[0, 0], good)
+
+    def test_exception(self):
+        z, n, mask = _batch(*gaussian_bump(16))
+        with pytest.raises(ValueError, match="method"):
+            integrate_normals(n, mask, method="l3")
+        with pytest.raises(ValueError, match="normals"):
+            integrate_normals(n[:, :2], mask)
+        with pytest.raises(ValueError, match="normals"):
+            integrate_normals(torch.full_like(n, float("nan")), mask)
+        with pytest.raises(ValueError, match="mask"):
+            integrate_normals(n, mask[..., :8])
+        with pytest.raises(ValueError, match="mask"):
+            integrate_normals(n, torch.zeros_like(mask))
+        with pytest.raises(ValueError, match="weights"):
+            integrate_normals(n, mask, weights=-torch.ones_like(z))
+        with pytest.raises(ValueError, match="focal"):
+            integrate_normals(n, mask, focal=0.0)
+        with pytest.raises(ValueError, match="unknown options"):
+            integrate_normals(n, mask, conv_iter=3)
+
+    @pytest.mark.parametrize("focal", [None, 10.0])
+    def test_gradcheck(self, focal):
+        g = torch.Generator().manual_seed(0)
+        n = torch.randn(1, 3, 6, 6, generator=g, dtype=F64)
+        n[:, 2] = n[:, 2].abs() + 1.0
+        n = (n / n.norm(dim=1, keepdim=True)).requires_grad_()
+        w = (torch.rand(1, 1, 6, 6, generator=g, dtype=F64) + 0.5).requires_grad_()
+        mask = torch.ones(1, 1, 6, 6, dtype=torch.bool)
+        mask[0, 0, 0, :2] = False
+        mask[0, 0, 3, :] = False  # two components
+
+        def f(n, w):
+            out = integrate_normals(n, mask, weights=w, focal=focal, tol=1e-12)
+            return out.depth, out.normals
+
+        assert torch.autograd.gradcheck(f, (n, w), eps=1e-6, atol=1e-6, fast_mode=True)
+
+    def test_module(self):
+        z, n, mask = _batch(*gaussian_bump(32))
+        cfg = IntegrabilityConfig(method="l1", l1_iter=3)
+        module = Integrator(**{k: v for k, v in vars(cfg).items() if k != "_target_"})
+        torch.testing.assert_close(module(n, mask).depth, integrate_normals(n, mask, method="l1", l1_iter=3).depth)
+        with pytest.raises(ValueError, match="method"):
+            Integrator(method="nope")
+
+
+class TestIntegrateL1:
+    def test_outliers(self):
+        z, n, mask = _batch(*gaussian_bump(64))
+        g = torch.Generator().manual_seed(0)
+        bad = (torch.rand(64, 64, generator=g, dtype=F64) < 0.05) & mask[0, 0]
+        rnd = torch.randn(3, 64, 64, generator=g, dtype=F64)
+        rnd[2] = rnd[2].abs() + 0.2
+        noisy = torch.where(bad, rnd / rnd.norm(dim=0), n[0])[None]
+        l2 = depth_rmse(integrate_normals(noisy, mask).depth, z[0, 0], mask)
+        l1 = depth_rmse(integrate_normals(noisy, mask, method="l1").depth, z[0, 0], mask)
+        assert l1 < 0.3 * l2
+
+    def test_crease(self):
+        z, n, mask = _batch(*crease(48))
+        out = integrate_normals(n, mask, method="l1", tol=1e-10)
+        assert depth_rmse(out.depth, z[0, 0], mask) < 1e-5
+
+
+class TestPerspective:
+    def test_sphere(self):
+        depth, n, mask = _batch(*perspective_sphere())
+        out = integrate_normals(n, mask, focal=80.0, tol=1e-10)
+        d = out.depth[mask]
+        truth = depth[mask] / torch.exp(torch.log(depth[mask]).mean())
+        assert float(torch.exp(torch.log(d).mean())) == pytest.approx(1.0, abs=1e-9)
+        assert float(((d - truth) / truth).abs().max()) < 2e-3
+        # the orthographic model cannot explain these normals as well
+        ortho = integrate_normals(n, mask, tol=1e-10)
+        assert float(angular_error(out.normals, n, mask).median()) < 0.5 * float(angular_error(ortho.normals, n, mask).median())
+
+    def test_plane_exact(self):
+        # a tilted plane: log-depth is not quadratic, so differences are exact to O(h^2) only
+        focal = 50.0
+        u, v = _grid(32)
+        normal = torch.tensor([0.3, -0.2, 0.9], dtype=F64)
+        normal = normal / normal.norm()
+        depth = 100.0 / (normal[2] - (u * normal[0] + v * normal[1]) / focal)
+        mask = torch.ones(1, 1, 32, 32, dtype=torch.bool)
+        n = normal[:, None, None].expand(3, 32, 32)[None]
+        out = integrate_normals(n, mask, focal=focal, tol=1e-12)
+        assert float(angular_error(out.normals, n, mask).max()) < 1e-3
+        torch.testing.assert_close(depth_to_normals(depth[None, None], mask, focal), n, atol=1e-4, rtol=0)
+
+    def test_depth_to_normals(self):
+        depth, n, mask = _batch(*perspective_sphere())
+        err = angular_error(depth_to_normals(depth, mask, focal=80.0), n, mask)
+        assert float(err.median()) < 0.1 and float(err.max()) < 2.0
+        with pytest.raises(ValueError, match="positive"):
+            depth_to_normals(-depth, mask, focal=80.0)
+
+
+class TestConvex:
+    def test_better_than_mean(self):
+        z, n, mask = _batch(*gaussian_bump(48))
+        g = torch.Generator().manual_seed(0)
+        cands = n[0] + 0.5 * torch.randn(3, 3, 48, 48, generator=g, dtype=F64)
+        cands[:, 2] = cands[:, 2].abs()
+        cands = cands / cands.norm(dim=1, keepdim=True)
+        slot = torch.randint(0, 3, (48, 48), generator=g)
+        cands = torch.where(slot == torch.arange(3)[:, None, None, None], n[0], cands)  # truth in one slot
+        cands = torch.where(mask[0], cands, 0.0)[None]
+        mean = cands.sum(1)
+        mean = mean / mean.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        base = integrate_normals(mean, mask)
+        conv = integrate_convex(cands, mask)
+        assert depth_rmse(conv.depth, z[0, 0], mask) < 0.8 * depth_rmse(base.depth, z[0, 0], mask)
+        assert float(angular_error(conv.normals, n, mask).median()) < 0.8 * float(angular_error(base.normals, n, mask).median())
+        # same path through integrate_normals
+        torch.testing.assert_close(integrate_normals(cands, mask, method="conv").depth, conv.depth)
+
+    def test_single_candidate_is_l2(self):
+        z, n, mask = _batch(*gaussian_bump(32))
+        torch.testing.assert_close(integrate_convex(n[:, None], mask, conv_iter=3).depth, integrate_normals(n, mask).depth)
+
+    def test_gradient(self):
+        z, n, mask = _batch(*gaussian_bump(16))
+        cands = torch.stack([n, n.flip(-1)], 1).requires_grad_()
+        integrate_convex(cands, mask, conv_iter=3).depth.square().sum().backward()
+        assert cands.grad is not None and bool(torch.isfinite(cands.grad).all()) and float(cands.grad.abs().sum()) > 0
+
+    def test_exception(self):
+        z, n, mask = _batch(*gaussian_bump(16))
+        with pytest.raises(ValueError, match="candidates"):
+            integrate_convex(n[:, :2, None], mask)
+
+
+class TestDepthToNormals:
+    def test_round_trip(self, device, dtype):
+        z, n, mask = _batch(*sphere_cap(48, dtype, device))
+        err = angular_error(depth_to_normals(z, mask), n, mask)
+        assert float(err.median()) < 0.2
+        assert depth_to_normals(z, mask).dtype == dtype
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="depth"):
+            depth_to_normals(torch.zeros(1, 2, 4, 4), torch.ones(1, 1, 4, 4))
+
+
+class TestDepthToMesh:
+    def test_orthographic(self):
+        z, n, mask = sphere_cap(32)
+        mesh = depth_to_mesh(z[None], mask[None])
+        assert len(mesh.vertices) == int(mask.sum())
+        assert float(mesh.face_normals[:, 2].min()) > 0  # faces look at the viewer
+        full = depth_to_mesh(torch.zeros(5, 5), torch.ones(5, 5, dtype=torch.bool))
+        assert len(full.faces) == 2 * 4 * 4 and full.area == pytest.approx(16.0)
+
+    def test_perspective(self):
+        depth, n, mask = perspective_sphere(32, focal=40.0)
+        mesh = depth_to_mesh(depth, mask, focal=40.0)
+        centres = mesh.triangles_center
+        assert float((mesh.face_normals * -centres).sum(1).min()) > 0  # towards the camera centre
+        assert float(mesh.vertices[:, 2].max()) < 0  # in front of the camera (z towards the viewer)
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="depth and mask"):
+            depth_to_mesh(torch.zeros(2, 4, 4), torch.ones(4, 4))
