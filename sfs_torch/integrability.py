@@ -74,7 +74,7 @@ class IntegrabilityConfig:
             the gradient (pixels per pixel, or log-depth per pixel).
         conv_iter: accelerated projected-gradient steps on the convex weights (each with
             one warm-started depth solve).
-        conv_prior: pull of the convex weights towards the uniform combination.
+        conv_prior: pull of the convex weights towards the mean of the candidates.
     """
 
     _target_: str = "sfs_torch.integrability.Integrator"
@@ -84,8 +84,8 @@ class IntegrabilityConfig:
     min_nz: float = 0.05
     l1_iter: int = 15
     l1_delta: float = 0.02
-    conv_iter: int = 100
-    conv_prior: float = 1e-3
+    conv_iter: int = 10
+    conv_prior: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -329,17 +329,18 @@ class _Solve(torch.autograd.Function):
 # ----------------------------------------------------------------------------- normals <-> gradients
 
 
-def _gradients(normals: Tensor, focal: Optional[float], principal_point, min_nz: float) -> Tuple[Tensor, Tensor]:
-    """Per-pixel ``(g_u, g_v)`` of height (orthographic) or log-depth (perspective); (..., H, W)."""
+def _gradients(normals: Tensor, focal: Optional[float], principal_point, min_nz: float) -> Tuple[Tensor, Tensor, Tensor]:
+    """Per-pixel ``(g_u, g_v)`` of height (orthographic) or log-depth (perspective), and the
+    positive factor ``c`` with ``g = (normal components) / c``; each (..., H, W)."""
     nx, ny, nz = normals.unbind(-3)
     if focal is None:
         nz = nz.clamp_min(min_nz)
-        return -nx / nz, -ny / nz
+        return -nx / nz, -ny / nz, nz
     h, w = normals.shape[-2:]
     u, v = pixel_grid(h, w, principal_point, device=normals.device, dtype=normals.dtype)
     k_min = min_nz * torch.sqrt(focal * focal + u * u + v * v)
     k = (focal * nz - u * nx - v * ny).clamp_min(k_min)
-    return nx / k, ny / k
+    return nx / k, ny / k, k / focal
 
 
 def _edge_targets(gu: Tensor, gv: Tensor, ex: Tensor, ey: Tensor) -> Tuple[Tensor, Tensor]:
@@ -451,7 +452,7 @@ def integrate_normals(
     m = mask[:, 0]
     labels = mask_components(mask)[:, 0]
     ex, ey = _edge_masks(m)
-    gu, gv = _gradients(normals, focal, principal_point, min_nz)
+    gu, gv, _ = _gradients(normals, focal, principal_point, min_nz)
     tx, ty = _edge_targets(gu, gv, ex, ey)
     w = m.to(normals.dtype) if weights is None else weights[:, 0]
     wx, wy = _edge_weights(w, ex, ey)
@@ -497,8 +498,8 @@ def integrate_convex(
     max_iter: int = 500,
     tol: float = 1e-5,
     min_nz: float = 0.05,
-    conv_iter: int = 100,
-    conv_prior: float = 1e-3,
+    conv_iter: int = 10,
+    conv_prior: float = 0.1,
 ) -> Surface:
     r"""Most integrable convex combination of candidate normals per pixel (paper Sec. 5).
 
@@ -509,8 +510,9 @@ def integrate_convex(
     divided by a positive per-candidate factor, ``sum_s alpha_s g_s`` is the gradient of
     the normalised non-negative combination ``sum_s beta_s n_s`` with
     ``beta_s ∝ alpha_s / c_s``: exactly the convex hull directions of the candidates.
-    The energy ``E(s, alpha) = sum_edges w (D s - t(alpha))^2 + conv_prior
-    sum_pixels |alpha - 1/S|^2`` is then jointly convex. We minimise
+    The weights start at ``alpha0_s ∝ c_s``, the (normalised) mean of the candidate
+    normals, and the energy ``E(s, alpha) = sum_edges w (D s - t(alpha))^2 + conv_prior
+    sum_pixels w |alpha - alpha0|^2`` is jointly convex. We minimise
     ``min_s E(s, alpha)`` over ``alpha`` by FISTA (accelerated projected gradient onto the
     simplex, per-pixel Lipschitz step); each step is one warm-started L2 solve for ``s``.
 
@@ -520,7 +522,7 @@ def integrate_convex(
         weights: per-pixel confidence :math:`(B, 1, H, W)`.
         focal, principal_point: camera, as in :func:`integrate_normals`.
         conv_iter: FISTA steps on the weights;
-        conv_prior: pull towards the uniform combination (relative to edge weights).
+        conv_prior: pull towards the candidates' mean (relative to edge weights).
 
     Returns:
         :class:`Surface` of the final combination; ``depth`` is differentiable with
@@ -538,12 +540,16 @@ def integrate_convex(
     labels = mask_components(mask)[:, 0]
     ex, ey = _edge_masks(m)
     num = candidates.shape[1]
-    gu, gv = _gradients(candidates, focal, principal_point, min_nz)  # (B, S, H, W)
+    gu, gv, factor = _gradients(candidates, focal, principal_point, min_nz)  # (B, S, H, W)
     gu_d, gv_d = gu.detach(), gv.detach()
+    # start from (and regularise towards) the normalised mean of the candidate normals:
+    # in gradient space its weights are proportional to the factors c_s
+    factor = factor.detach()
+    prior = factor / factor.sum(1, keepdim=True).clamp_min(torch.finfo(factor.dtype).tiny)
     w = m.to(candidates.dtype) if weights is None else weights[:, 0]
     wx, wy = _edge_weights(w, ex, ey)
     problem = _Problem(wx, wy, labels, max_iter, tol)
-    alpha = torch.full_like(gu_d, 1.0 / num)
+    alpha = prior
     # Lipschitz bound of the alpha-gradient per pixel (Gershgorin over the edge coupling)
     wsum = wx + F.pad(wx[..., :, :-1], (1, 0)) + wy + F.pad(wy[..., :-1, :], (0, 0, 1, 0))
     lip = wsum * (gu_d * gu_d + gv_d * gv_d).sum(1) + 2.0 * conv_prior * w
@@ -558,7 +564,7 @@ def integrate_convex(
         fx, fy = -2.0 * wx * (_dx(s) - tx), -2.0 * wy * (_dy(s) - ty)
         du = 0.5 * (fx + F.pad(fx[..., :, :-1], (1, 0)))
         dv = -0.5 * (fy + F.pad(fy[..., :-1, :], (0, 0, 1, 0)))
-        grad = du[:, None] * gu_d + dv[:, None] * gv_d + 2.0 * conv_prior * w[:, None] * (y - 1.0 / num)
+        grad = du[:, None] * gu_d + dv[:, None] * gv_d + 2.0 * conv_prior * w[:, None] * (y - prior)
         new = _project_simplex(y - step * grad, 1)
         next_momentum = 0.5 * (1.0 + (1.0 + 4.0 * momentum * momentum) ** 0.5)
         y = new + ((momentum - 1.0) / next_momentum) * (new - alpha)
@@ -716,8 +722,8 @@ class Integrator(nn.Module):
         min_nz: float = 0.05,
         l1_iter: int = 15,
         l1_delta: float = 0.02,
-        conv_iter: int = 100,
-        conv_prior: float = 1e-3,
+        conv_iter: int = 10,
+        conv_prior: float = 0.1,
         focal: Optional[float] = None,
         principal_point: Optional[Sequence[float]] = None,
     ):
