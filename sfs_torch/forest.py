@@ -375,12 +375,16 @@ class VMFForest:
         if X.shape[1] != self.n_features_in_:
             raise ValueError(f"X must have {self.n_features_in_} features (as in fit), got {X.shape[1]}")
         check_finite(X, "X")
-        X = X.to(device=self.threshold_.device, dtype=self.threshold_.dtype)
-        node = torch.arange(self.n_trees, device=X.device).expand(X.shape[0], -1)
+        X = X.to(device=self.threshold_.device, dtype=self.threshold_.dtype).contiguous()
+        n_rows, n_features = X.shape
+        # flat (row, tree) layout: every step is a handful of 1-D gathers
+        node = torch.arange(self.n_trees, device=X.device).repeat(n_rows)
+        row_start = torch.arange(0, n_rows * n_features, n_features, device=X.device).repeat_interleave(self.n_trees)
+        values = X.view(-1)
         for _ in range(self.depth_):
-            right = X.gather(1, self.feature_[node]) > self.threshold_[node]
-            node = self.child_[node] + right
-        return node
+            x = values.index_select(0, self.feature_.index_select(0, node).add_(row_start))
+            node = self.child_.index_select(0, node).add_(x > self.threshold_.index_select(0, node))
+        return node.view(n_rows, self.n_trees)
 
     def predict_leaves(self, X: Tensor) -> VMF:
         """Per-tree leaf distributions of each row (to draw samples from).
@@ -392,7 +396,9 @@ class VMFForest:
             :class:`VMF` with ``mean`` :math:`(N, T, 3)`, ``kappa`` :math:`(N, T)`.
         """
         node = self._leaf_index(X)
-        return VMF(mean=self.mean_[node], kappa=self.kappa_[node])
+        flat = node.view(-1)
+        mean = self.mean_.index_select(0, flat).view(*node.shape, 3)
+        return VMF(mean=mean, kappa=self.kappa_.index_select(0, flat).view(node.shape))
 
     def predict(self, X: Tensor) -> VMF:
         r"""One normal and concentration per row.

@@ -1,0 +1,333 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy import stats
+
+from sfs_torch.forest import (
+    MAX_KAPPA,
+    VMF,
+    ForestConfig,
+    NotFittedError,
+    VMFForest,
+    _quantile_edges,
+    sample_vmf,
+    vmf_entropy,
+    vmf_fit,
+)
+
+
+def _a3(kappa):
+    """Mean resultant length of a vMF on S^2: coth(kappa) - 1/kappa."""
+    return 1.0 / math.tanh(kappa) - 1.0 / kappa
+
+
+def _angle_deg(a, b):
+    return torch.rad2deg(torch.acos((a * b).sum(-1).clamp(-1.0, 1.0)))
+
+
+def _smooth_data(n, n_features=6, noise=0.0, seed=0, dtype=torch.float32):
+    """Normals that are a smooth function of the first three features (the rest is clutter)."""
+    g = torch.Generator().manual_seed(seed)
+    X = torch.rand(n, n_features, generator=g, dtype=torch.float64)
+    azimuth = 2.0 * math.pi * X[:, 0] + 0.5 * X[:, 2]
+    polar = 0.1 + 1.2 * X[:, 1]
+    normals = torch.stack(
+        [polar.sin() * azimuth.cos(), polar.sin() * azimuth.sin(), polar.cos()], dim=1
+    )
+    if noise:
+        normals = normals + noise * torch.randn(n, 3, generator=g, dtype=torch.float64)
+    normals = torch.nn.functional.normalize(normals, dim=1)
+    return X.to(dtype), normals.to(dtype)
+
+
+def _random_unit(n, seed, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    return torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=dtype), dim=1)
+
+
+class TestVMFFit:
+    @pytest.mark.parametrize("kappa", [5.0, 10.0, 50.0, 100.0, 500.0])
+    def test_recovers_scipy_concentration(self, kappa, device):
+        mu = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+        samples = stats.vonmises_fisher(mu, kappa).rvs(400_000, random_state=1)
+        x = torch.from_numpy(samples).to(device)
+        fit = vmf_fit(x.sum(0), torch.tensor(float(len(x)), dtype=x.dtype, device=device))
+        # Dhillon-Sra is an approximation: its bias on S^2 is 4.9% at kappa 5, < 1% above 50.
+        assert abs(float(fit.kappa) / kappa - 1.0) < 0.05
+        assert float(_angle_deg(fit.mean, torch.from_numpy(mu).to(device))) < 0.5
+
+    def test_exact_resultant_length(self, dtype):
+        kappa = torch.tensor([5.0, 20.0, 100.0, 500.0], dtype=torch.float64)
+        r = torch.tensor([_a3(float(k)) for k in kappa], dtype=torch.float64)
+        fit = vmf_fit(torch.stack([torch.zeros_like(r), torch.zeros_like(r), r], 1).to(dtype), torch.ones(4, dtype=dtype))
+        torch.testing.assert_close(fit.kappa.double(), kappa, rtol=0.05, atol=0)
+        # the approximation's known bias: 3R - R^3 over 1 - R^2 at R = A(5)
+        assert float(fit.kappa[0]) == pytest.approx(5.2468, rel=1e-3)
+
+    def test_batched_shapes(self, device, dtype):
+        s = torch.randn(2, 5, 3, device=device, dtype=dtype)
+        fit = vmf_fit(s, torch.full((2, 5), 4.0, device=device, dtype=dtype))
+        assert fit.mean.shape == (2, 5, 3) and fit.kappa.shape == (2, 5)
+        assert fit.mean.dtype == dtype and fit.kappa.device.type == device.type
+        torch.testing.assert_close(fit.mean.norm(dim=-1), torch.ones(2, 5, device=device, dtype=dtype))
+
+    def test_degenerate(self, dtype):
+        sums = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 3.0, 0.0], [0.0, 0.0, 0.0]], dtype=dtype)
+        counts = torch.tensor([1.0, 4.0, 3.0, 0.0], dtype=dtype)
+        fit = vmf_fit(sums, counts)
+        assert torch.isfinite(fit.kappa).all() and torch.isfinite(fit.mean).all()
+        assert fit.kappa.tolist() == [MAX_KAPPA, 0.0, MAX_KAPPA, 0.0]
+        assert fit.mean[1].tolist() == [0.0, 0.0, 1.0]
+        assert torch.isfinite(vmf_entropy(fit.kappa)).all()
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="normal_sum"):
+            vmf_fit(torch.zeros(4, 2), torch.ones(4))
+        with pytest.raises(ValueError, match="count"):
+            vmf_fit(torch.zeros(4, 3), torch.ones(3))
+
+
+class TestVMFEntropy:
+    @pytest.mark.parametrize("kappa", [1e-3, 0.5, 5.0, 50.0, 5000.0])
+    def test_vs_scipy(self, kappa, device, dtype):
+        ref = stats.vonmises_fisher([0.0, 0.0, 1.0], kappa).entropy()
+        got = vmf_entropy(torch.tensor([kappa], device=device, dtype=dtype))
+        assert got.dtype == dtype
+        assert float(got) == pytest.approx(ref, abs=1e-5 if dtype == torch.float32 else 1e-10)
+
+    def test_limits(self):
+        h = vmf_entropy(torch.tensor([0.0, 1e-30, 1e4, 1e30]))
+        assert torch.isfinite(h).all()
+        assert float(h[0]) == pytest.approx(math.log(4.0 * math.pi), abs=1e-6)
+        assert (h.diff() <= 0).all()  # decreasing in kappa
+
+
+class TestSampleVMF:
+    @pytest.mark.parametrize("kappa", [0.0, 2.0, 20.0, 500.0])
+    def test_mean_resultant_length(self, kappa, device, dtype):
+        g = torch.Generator(device=device).manual_seed(0)
+        mean = torch.nn.functional.normalize(torch.tensor([[0.6, -0.2, 0.7]], device=device, dtype=dtype), dim=-1)
+        vmf = VMF(mean=mean, kappa=torch.tensor([kappa], device=device, dtype=dtype))
+        x = sample_vmf(vmf, 50_000, generator=g)
+        assert x.shape == (1, 50_000, 3) and x.dtype == dtype
+        torch.testing.assert_close(x.norm(dim=-1), torch.ones(1, 50_000, device=device, dtype=dtype))
+        r = x[0].mean(0)
+        expected = 0.0 if kappa == 0 else _a3(kappa)
+        assert float(r.norm()) == pytest.approx(expected, abs=0.01)
+        if kappa > 0:
+            assert float(_angle_deg(r / r.norm(), mean[0])) < 2.0
+
+    def test_matches_scipy_distribution(self):
+        kappa = 8.0
+        mu = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+        ours = sample_vmf(VMF(mu, torch.tensor(kappa, dtype=torch.float64)), 20_000, torch.Generator().manual_seed(3))
+        ref = stats.vonmises_fisher(mu.numpy(), kappa).rvs(20_000, random_state=3)
+        # cosine to the mean, and the azimuth, must have the same laws
+        assert stats.ks_2samp(ours[:, 2].numpy(), ref[:, 2]).pvalue > 1e-3
+        az = torch.atan2(ours[:, 1], ours[:, 0]).numpy()
+        assert stats.ks_2samp(az, np.arctan2(ref[:, 1], ref[:, 0])).pvalue > 1e-3
+
+    def test_reproducible(self):
+        vmf = VMF(torch.tensor([[0.0, 1.0, 0.0]]), torch.tensor([3.0]))
+        a = sample_vmf(vmf, 10, torch.Generator().manual_seed(1))
+        b = sample_vmf(vmf, 10, torch.Generator().manual_seed(1))
+        assert torch.equal(a, b)
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="kappa"):
+            sample_vmf(VMF(torch.zeros(2, 3), torch.zeros(3)), 4)
+        with pytest.raises(ValueError, match="n_samples"):
+            sample_vmf(VMF(torch.tensor([[0.0, 0.0, 1.0]]), torch.ones(1)), 0)
+
+
+def _brute_force_root(X, normals, min_samples_leaf, thresholds):
+    """Best (score, feature, left mask) over all given thresholds, by direct enumeration."""
+    best = (math.inf, None, None)
+    for f in range(X.shape[1]):
+        for t in thresholds[f]:
+            left = X[:, f] <= t
+            n_left = int(left.sum())
+            if n_left < min_samples_leaf or len(X) - n_left < min_samples_leaf:
+                continue
+            score = 0.0
+            for side in (left, ~left):
+                n = torch.tensor(float(side.sum()), dtype=X.dtype)
+                score += float(n * vmf_entropy(vmf_fit(normals[side].sum(0), n).kappa))
+            if score < best[0]:
+                best = (score, f, left)
+    return best
+
+
+def _root_score(forest, X, normals):
+    f, t = int(forest.feature_[0]), forest.threshold_[0]
+    left = X[:, f] <= t
+    score = 0.0
+    for side in (left, ~left):
+        n = torch.tensor(float(side.sum()), dtype=X.dtype)
+        score += float(n * vmf_entropy(vmf_fit(normals[side].sum(0), n).kappa))
+    return f, left, score
+
+
+class TestSplitSearch:
+    @pytest.mark.parametrize("seed", range(6))
+    def test_all_thresholds_vs_brute_force(self, seed):
+        # n_bins >= rows: every distinct value is its own bin, so the histogram search is exhaustive
+        g = torch.Generator().manual_seed(seed)
+        X = torch.rand(48, 4, generator=g, dtype=torch.float64)
+        normals = _random_unit(48, seed + 100)
+        normals[X[:, seed % 4] > 0.6] += torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64)
+        normals = torch.nn.functional.normalize(normals, dim=1)
+        forest = VMFForest(n_trees=1, max_depth=1, min_samples_leaf=3, max_features=4, n_bins=64, sample_fraction=1.0)
+        forest.fit(X, normals)
+        score, feature, left = _brute_force_root(X, normals, 3, [X[:, f].unique() for f in range(4)])
+        got_feature, got_left, got_score = _root_score(forest, X, normals)
+        assert got_feature == feature
+        assert torch.equal(got_left, left)
+        assert got_score == pytest.approx(score, rel=1e-9)
+
+    @pytest.mark.parametrize("seed", range(3))
+    def test_binned_thresholds_vs_brute_force(self, seed):
+        # with few bins the candidates are the quantile edges; brute force over the same edges
+        g = torch.Generator().manual_seed(seed)
+        X = torch.randn(300, 5, generator=g, dtype=torch.float64)
+        normals = torch.nn.functional.normalize(
+            torch.stack([X[:, 1], X[:, 3].tanh(), torch.full_like(X[:, 0], 1.5)], 1)
+            + 0.3 * _random_unit(300, seed + 7),
+            dim=1,
+        )
+        forest = VMFForest(n_trees=1, max_depth=1, min_samples_leaf=5, max_features=5, n_bins=8, sample_fraction=1.0)
+        forest.fit(X, normals)
+        edges = _quantile_edges(X, 8, torch.Generator().manual_seed(0))
+        score, feature, left = _brute_force_root(X, normals, 5, edges)
+        got_feature, got_left, got_score = _root_score(forest, X, normals)
+        assert (got_feature, got_score) == (feature, pytest.approx(score, rel=1e-9))
+        assert torch.equal(got_left, left)
+
+    def test_no_gain_no_split(self):
+        # identical normals: no split can lower the entropy
+        X = torch.rand(100, 3, generator=torch.Generator().manual_seed(0))
+        normals = torch.tensor([[0.0, 0.0, 1.0]]).expand(100, 3)
+        forest = VMFForest(n_trees=2, max_depth=5, min_samples_leaf=2, max_features=3).fit(X, normals)
+        assert forest.child_.numel() == 2 and forest.depth_ == 0
+        assert forest.kappa_.tolist() == [MAX_KAPPA, MAX_KAPPA]
+
+
+class TestVMFForest:
+    def test_smooth_function(self, device):
+        X, normals = _smooth_data(30_000, seed=0)
+        X_test, normals_test = _smooth_data(5_000, seed=1)
+        forest = VMFForest(n_trees=4, max_depth=12, min_samples_leaf=3, max_features=4, n_bins=64, device=device)
+        forest.fit(X, normals)
+        pred = forest.predict(X_test.to(device))
+        err = _angle_deg(pred.mean.cpu(), normals_test)
+        assert float(err.median()) < 2.5
+        assert float(err.quantile(0.9)) < 6.0
+        assert pred.mean.shape == (5_000, 3) and pred.kappa.shape == (5_000,)
+        assert (pred.kappa > 0).all() and torch.isfinite(pred.kappa).all()
+
+    def test_noise_lowers_kappa(self):
+        X, n_clean = _smooth_data(20_000, seed=0)
+        _, n_noisy = _smooth_data(20_000, noise=0.3, seed=0)
+        kw = dict(n_trees=3, max_depth=8, min_samples_leaf=5, max_features=3)
+        k_clean = VMFForest(**kw).fit(X, n_clean).predict(X[:2000]).kappa.median()
+        k_noisy = VMFForest(**kw).fit(X, n_noisy).predict(X[:2000]).kappa.median()
+        assert float(k_noisy) < 0.5 * float(k_clean)
+
+    def test_predict_combines_leaves(self):
+        X, normals = _smooth_data(5_000, seed=0)
+        forest = VMFForest(n_trees=5, max_depth=6).fit(X, normals)
+        leaves, pred = forest.predict_leaves(X[:100]), forest.predict(X[:100])
+        assert leaves.mean.shape == (100, 5, 3) and leaves.kappa.shape == (100, 5)
+        s = (leaves.kappa[..., None] * leaves.mean).sum(1)
+        torch.testing.assert_close(pred.mean, s / s.norm(dim=1, keepdim=True))
+        torch.testing.assert_close(pred.kappa, s.norm(dim=1) / 5)
+        # leaves hold the in-bag statistics: their means are unit vectors
+        torch.testing.assert_close(leaves.mean.norm(dim=-1), torch.ones(100, 5))
+
+    def test_leaf_sizes_and_depth(self):
+        # with all rows in the bag, routing the training rows reproduces the leaf counts
+        X, normals = _smooth_data(4_000, noise=0.2, seed=2)
+        forest = VMFForest(n_trees=3, max_depth=5, min_samples_leaf=20, sample_fraction=1.0).fit(X, normals)
+        node = forest._leaf_index(X)
+        is_leaf = forest.child_ == torch.arange(forest.child_.numel())
+        assert is_leaf[node].all() and forest.depth_ == 5
+        per_leaf = torch.bincount(node.reshape(-1), minlength=is_leaf.numel())[is_leaf]
+        assert int(per_leaf.min()) >= 20 and int(per_leaf.sum()) == 3 * 4_000
+
+    def test_float64(self):
+        X, normals = _smooth_data(3_000, dtype=torch.float64)
+        pred = VMFForest(n_trees=2, max_depth=6).fit(X, normals).predict(X)
+        assert pred.mean.dtype == torch.float64 and pred.kappa.dtype == torch.float64
+
+    def test_same_seed_same_forest(self):
+        X, normals = _smooth_data(8_000, noise=0.1, seed=0)
+        a = VMFForest(n_trees=3, max_depth=8, seed=7).fit(X, normals)
+        b = VMFForest(n_trees=3, max_depth=8, seed=7).fit(X, normals)
+        c = VMFForest(n_trees=3, max_depth=8, seed=8).fit(X, normals)
+        for name in ("feature_", "threshold_", "child_", "mean_", "kappa_"):
+            assert torch.equal(getattr(a, name), getattr(b, name))
+        assert not torch.equal(a.threshold_, c.threshold_) or not torch.equal(a.feature_, c.feature_)
+
+    def test_save_load_bit_exact(self, tmp_path):
+        X, normals = _smooth_data(5_000, noise=0.1, seed=0)
+        forest = VMFForest(n_trees=3, max_depth=7, max_features=0.5, seed=3).fit(X, normals)
+        forest.save(tmp_path / "forest.safetensors")
+        loaded = VMFForest.load(tmp_path / "forest.safetensors")
+        assert loaded.get_params() == forest.get_params()
+        assert loaded.max_features == 0.5 and loaded.depth_ == forest.depth_
+        for name in ("feature_", "threshold_", "child_", "mean_", "kappa_"):
+            assert torch.equal(getattr(loaded, name), getattr(forest, name))
+        a, b = forest.predict(X), loaded.predict(X)
+        assert torch.equal(a.mean, b.mean) and torch.equal(a.kappa, b.kappa)
+
+    def test_device(self, device):
+        X, normals = _smooth_data(4_000, noise=0.1, seed=0)
+        cpu = VMFForest(n_trees=2, max_depth=6).fit(X, normals)
+        moved = VMFForest(n_trees=2, max_depth=6).fit(X, normals).to(device)
+        assert moved.child_.device.type == device.type
+        pred = moved.predict(X.to(device))
+        assert pred.mean.device.type == device.type
+        torch.testing.assert_close(pred.mean.cpu(), cpu.predict(X).mean)
+        trained = VMFForest(n_trees=2, max_depth=6, device=device).fit(X, normals)
+        assert trained.child_.device.type == device.type
+        # same random draws on every device; sums may differ in the last bits on GPU
+        agree = (trained.predict(X).mean.cpu() - cpu.predict(X).mean).norm(dim=1) < 1e-4
+        assert float(agree.float().mean()) > 0.99
+
+    def test_params_stored_unchanged(self):
+        forest = VMFForest(n_trees=3, max_features=0.3, n_bins=16, device="cpu")
+        assert (forest.n_trees, forest.max_features, forest.n_bins, forest.device) == (3, 0.3, 16, "cpu")
+        config = ForestConfig()
+        assert VMFForest().n_trees == config.n_trees and VMFForest().max_depth == config.max_depth
+
+    def test_not_fitted(self):
+        forest = VMFForest()
+        with pytest.raises(NotFittedError, match="fit"):
+            forest.predict(torch.rand(3, 4))
+        assert issubclass(NotFittedError, ValueError)
+
+    def test_exception(self):
+        X, normals = _smooth_data(200)
+        with pytest.raises(ValueError, match="X"):
+            VMFForest().fit(X[:, 0], normals)
+        with pytest.raises(ValueError, match="normals"):
+            VMFForest().fit(X, normals[:, :2])
+        with pytest.raises(ValueError, match="same number of rows"):
+            VMFForest().fit(X, normals[:100])
+        bad = X.clone()
+        bad[3, 1] = float("nan")
+        with pytest.raises(ValueError, match="X contains"):
+            VMFForest().fit(bad, normals)
+        with pytest.raises(ValueError, match="unit"):
+            VMFForest().fit(X, 2 * normals)
+        with pytest.raises(ValueError, match="n_bins"):
+            VMFForest(n_bins=300).fit(X, normals)
+        with pytest.raises(ValueError, match="max_features"):
+            VMFForest(max_features=1.5).fit(X, normals)
+        forest = VMFForest(n_trees=2, max_depth=3).fit(X, normals)
+        with pytest.raises(ValueError, match="6 features"):
+            forest.predict(X[:, :4])
+        with pytest.raises(ValueError, match="X contains"):
+            forest.predict(bad)
