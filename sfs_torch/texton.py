@@ -1,0 +1,183 @@
+"""Texton features (paper Sec. 6): CIE L*a*b* and a 17-filter bank in one ``conv2d``.
+
+The bank (Winn et al. 2005, as the paper cites) on the Lab image, every kernel truncated
+to ``kernel_size x kernel_size`` (5 x 5, the size of the training patches):
+
+* Gaussians, sigma 1, 2, 4, on each of L, a, b (filters 0-8),
+* Laplacians of Gaussian, sigma 1, 2, 4, 8, on L (filters 9-12),
+* first derivatives of Gaussian along x and y, sigma 2 and 4, on L (filters 13-16).
+
+Each kernel equals what ``scipy.ndimage`` applies with ``radius = kernel_size // 2``:
+``gaussian_filter``, ``gaussian_laplace`` and ``gaussian_filter(order=...)`` (the
+truncated 1-D Gaussian normalised to sum 1, its derivatives taken analytically and not
+renormalised). Derivatives are in the camera frame: ``x`` to the right (scipy's
+``order=(0, 1)``) and ``y`` **up**, i.e. minus scipy's ``order=(1, 0)`` along rows.
+
+Background rule (identical for training patches and test images): pixels outside the
+mask are set to black *before* the Lab conversion, and the image is zero-padded. Black is
+Lab ``(0, 0, 0)``, so zero padding of the Lab image is the same as a black border, and a
+``kernel_size`` patch filtered with ``padding="valid"`` equals the ``"same"`` response at
+its centre pixel.
+"""
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+import torch
+import torch.nn.functional as F
+from kornia.color import linear_rgb_to_rgb, rgb_to_lab
+from torch import Tensor
+
+from ._checks import check_finite, check_same_size, check_shape, from_batch, to_batch
+
+__all__ = [
+    "N_TEXTON_FILTERS",
+    "TEXTON_FILTER_NAMES",
+    "TextonConfig",
+    "texton_filter_bank",
+    "linear_rgb_to_lab",
+    "texton_features",
+]
+
+_GAUSS_SIGMAS = (1.0, 2.0, 4.0)
+_LOG_SIGMAS = (1.0, 2.0, 4.0, 8.0)
+_DERIV_SIGMAS = (2.0, 4.0)
+
+TEXTON_FILTER_NAMES: Tuple[str, ...] = (
+    *(f"gauss_{c}_s{s:g}" for c in ("L", "a", "b") for s in _GAUSS_SIGMAS),
+    *(f"log_L_s{s:g}" for s in _LOG_SIGMAS),
+    *(f"d{axis}_L_s{s:g}" for s in _DERIV_SIGMAS for axis in ("x", "y")),
+)
+N_TEXTON_FILTERS = len(TEXTON_FILTER_NAMES)  # 17
+
+
+@dataclass
+class TextonConfig:
+    """Texton features.
+
+    Attributes:
+        kernel_size: odd support of every filter; the paper matches the 5 x 5 patches.
+    """
+
+    kernel_size: int = 5
+
+
+def _gaussian_kernel1d(sigma: float, order: int, radius: int) -> Tensor:
+    """scipy.ndimage's truncated 1-D Gaussian (or derivative), as a correlation kernel."""
+    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    phi = torch.exp(-0.5 * x * x / sigma**2)
+    phi = phi / phi.sum()
+    poly = {0: torch.ones_like(x), 1: -x / sigma**2, 2: x * x / sigma**4 - 1.0 / sigma**2}[order]
+    # scipy convolves (reverses the kernel); conv2d correlates
+    return (poly * phi).flip(0)
+
+
+@functools.lru_cache(maxsize=None)
+def _filter_bank(kernel_size: int, device: torch.device, dtype: torch.dtype) -> Tensor:
+    r = kernel_size // 2
+
+    def outer(order_row: int, order_col: int, sigma: float) -> Tensor:
+        return _gaussian_kernel1d(sigma, order_row, r)[:, None] * _gaussian_kernel1d(sigma, order_col, r)[None, :]
+
+    bank = torch.zeros(N_TEXTON_FILTERS, 3, kernel_size, kernel_size, dtype=torch.float64)
+    i = 0
+    for channel in range(3):
+        for sigma in _GAUSS_SIGMAS:
+            bank[i, channel] = outer(0, 0, sigma)
+            i += 1
+    for sigma in _LOG_SIGMAS:
+        bank[i, 0] = outer(2, 0, sigma) + outer(0, 2, sigma)
+        i += 1
+    for sigma in _DERIV_SIGMAS:
+        bank[i, 0] = outer(0, 1, sigma)  # d/dx, x right = columns
+        bank[i + 1, 0] = -outer(1, 0, sigma)  # d/dy, y up = minus d/drow
+        i += 2
+    return bank.to(device=device, dtype=dtype)
+
+
+def texton_filter_bank(
+    kernel_size: int = 5, *, device: Optional[torch.device] = None, dtype: torch.dtype = torch.float32
+) -> Tensor:
+    r"""The 17 texton filters as ``conv2d`` weights for a Lab image.
+
+    Built once and cached per ``(kernel_size, device, dtype)``: do not modify the result
+    in place. Order and names: :data:`TEXTON_FILTER_NAMES`.
+
+    Args:
+        kernel_size: odd filter support (5 in the paper).
+        device, dtype: of the returned weights.
+
+    Returns:
+        :math:`(17, 3, k, k)` weights; input channels are L, a, b.
+
+    Example:
+        >>> texton_filter_bank().shape
+        torch.Size([17, 3, 5, 5])
+    """
+    if not isinstance(kernel_size, int) or kernel_size < 1 or kernel_size % 2 == 0:
+        raise ValueError(f"kernel_size must be a positive odd integer, got {kernel_size!r}")
+    return _filter_bank(kernel_size, torch.device("cpu") if device is None else torch.device(device), dtype)
+
+
+def linear_rgb_to_lab(image: Tensor) -> Tensor:
+    r"""CIE L*a*b* (D65, 2 degree observer) of a LINEAR RGB image.
+
+    kornia's ``rgb_to_lab`` expects sRGB-encoded input, so the linear values are
+    encoded first; the result matches ``skimage.color.rgb2lab`` of the sRGB encoding.
+
+    Args:
+        image: :math:`(B, 3, H, W)` (or :math:`(3, H, W)`) linear RGB, nominally [0, 1].
+
+    Returns:
+        :math:`(B, 3, H, W)` L in [0, 100], a and b roughly in [-128, 127].
+    """
+    batch, single = to_batch(image, "image", 3)
+    check_shape(batch, "image", "B 3 H W")
+    return from_batch(rgb_to_lab(linear_rgb_to_rgb(batch)), single)
+
+
+def texton_features(
+    image: Tensor, mask: Optional[Tensor] = None, *, kernel_size: int = 5, padding: str = "same"
+) -> Tensor:
+    r"""Texton filter responses of a linear RGB image.
+
+    Pixels outside ``mask`` are set to black before the Lab conversion, and the image
+    border is zero-padded (black). ``padding="valid"`` on ``kernel_size`` patches gives
+    exactly the ``"same"`` response at the patch centres. Differentiable in ``image``.
+
+    Args:
+        image: :math:`(B, 3, H, W)` (or :math:`(3, H, W)`) linear RGB.
+        mask: optional :math:`(B, 1, H, W)` (or :math:`(1, H, W)`, :math:`(H, W)`) bool / 0-1.
+        kernel_size: odd filter support.
+        padding: ``"same"`` (output :math:`H \times W`) or ``"valid"`` (output
+            :math:`(H - k + 1) \times (W - k + 1)`).
+
+    Returns:
+        :math:`(B, 17, H', W')` responses (same dtype and device as ``image``).
+    """
+    if padding not in ("same", "valid"):
+        raise ValueError(f"padding must be 'same' or 'valid', got {padding!r}")
+    batch, single = to_batch(image, "image", 3)
+    check_shape(batch, "image", "B 3 H W")
+    check_finite(batch, "image")
+    if padding == "valid" and min(batch.shape[-2:]) < kernel_size:
+        raise ValueError(
+            f"image of size {tuple(batch.shape[-2:])} is smaller than kernel_size {kernel_size} for padding='valid'"
+        )
+    weights = texton_filter_bank(kernel_size, device=batch.device, dtype=batch.dtype)
+    if mask is not None:
+        mask_b, _ = to_batch(mask, "mask", 1)
+        if mask_b.ndim != 4 or mask_b.shape[1] != 1:
+            raise ValueError(f"mask must have shape (B, 1, H, W), got {tuple(mask.shape)}")
+        check_same_size(batch, "image", mask_b, "mask")
+        if mask_b.dtype != torch.bool:
+            if mask_b.is_complex() or not bool(((mask_b == 0) | (mask_b == 1)).all()):
+                raise ValueError(f"mask must be boolean or hold only 0 and 1 (dtype {mask_b.dtype})")
+            mask_b = mask_b != 0
+        batch = torch.where(mask_b, batch, torch.zeros((), dtype=batch.dtype, device=batch.device))
+    lab = rgb_to_lab(linear_rgb_to_rgb(batch))
+    out = F.conv2d(lab, weights, padding=kernel_size // 2 if padding == "same" else 0)
+    return from_batch(out, single)
