@@ -61,6 +61,19 @@ class SilhouetteConfig:
             (spokes to both sides of the shape) differ by far more. Rectangle corner
             branches have 90 degrees; the ends of elongated axes get trimmed where
             the shape narrows below this angle.
+        prune_depth_ratio, prune_window: an axis point must be at least
+            ``prune_depth_ratio`` as far from the contour as the deepest pixel within
+            ``prune_window`` times its own depth. Contour bumps and notches make
+            axis points near the contour, right beside much deeper interior; a single
+            one would cap ``d_M`` by about ``d_B`` over the whole object, so this
+            non-local test is what makes ``d_rel`` robust to noisy silhouettes
+            (``prune_depth_ratio=0`` disables it). It also trims the shallow ends of
+            corner branches.
+        depth_layer_ratio: ``d_M`` of a pixel at depth ``d`` only looks at axis points
+            deeper than about ``d / depth_layer_ratio`` (see Eq. 5: the axis point on
+            the ray through the pixel is deeper than the pixel); ``inf`` gives the
+            plain distance to the axis. Costs one extra row pass per factor of this
+            ratio in depth.
         gradient_sigma: Gaussian smoothing (pixels) of ``d_rel`` before its Sobel
             gradient gives ``beta``; the distance transform is quantised to the pixel
             grid, and on a disk of radius 100 px this takes the median ``beta`` error
@@ -69,6 +82,9 @@ class SilhouetteConfig:
 
     prune_distance: float = 3.0
     prune_angle: float = 60.0
+    prune_depth_ratio: float = 0.5
+    prune_window: float = 2.0
+    depth_layer_ratio: float = 2.0
     gradient_sigma: float = 1.5
 
 
@@ -189,16 +205,16 @@ def euclidean_distance_transform(mask: Tensor) -> Tensor:
         mask: :math:`(B, 1, H, W)` (or :math:`(H, W)`, :math:`(1, H, W)`) bool or 0/1.
 
     Returns:
-        :math:`(B, 1, H, W)` float32 distances in pixels (same leading shape as ``mask``).
+        float32 distances in pixels, the shape of ``mask``.
 
     Example:
         >>> m = torch.zeros(1, 1, 5, 5, dtype=torch.bool); m[..., 1:4, 1:4] = True
         >>> euclidean_distance_transform(m)[0, 0, 2]
         tensor([0., 1., 2., 1., 0.])
     """
-    batch, single = _mask_argument(mask, "mask", allow_empty=True)
+    batch, _ = _mask_argument(mask, "mask", allow_empty=True)
     dist2, _, _ = _edt_squared(batch[:, 0])
-    return from_batch(dist2.sqrt()[:, None], single)
+    return dist2.sqrt().view(mask.shape)
 
 
 def _medial_axis_from_features(
@@ -235,10 +251,44 @@ def _medial_axis_from_features(
         split = (sep2 > config.prune_distance**2) & (dot < cos_max * norms) & first(foreground) & second(foreground)
         first(axis).logical_or_(split & (crit >= 0))
         second(axis).logical_or_(split & (crit <= 0))
+    axis &= _locally_deep(dist2.sqrt(), config)
     # every object keeps at least its deepest point, so d_M stays finite after pruning
     deepest = torch.where(foreground, dist2, -1.0).flatten(1).argmax(1)
     axis.view(b, -1)[torch.arange(b, device=device), deepest] = True
     return axis
+
+
+def _locally_deep(dist: Tensor, config: SilhouetteConfig) -> Tensor:
+    """Pixels at least ``prune_depth_ratio`` as deep as the deepest pixel within
+    ``prune_window`` times their own depth (a square window, radius rounded up to a power
+    of two). Axis points produced by contour noise sit at small depth next to much
+    deeper interior and fail this; true axis points are local depth maxima at the scale
+    of their own depth. Windows grow by doubling: the max over ``[x - 2r, x + 2r]^2`` is
+    the max of the ``r``-windows shifted by ``(+-r, +-r)``.
+    """
+    if config.prune_depth_ratio <= 0:
+        return torch.ones_like(dist, dtype=torch.bool)
+    finite = torch.where(torch.isfinite(dist), dist, 0.0)
+    need = (config.prune_window * finite).clamp_min(1.0)
+    level_needed = torch.ceil(torch.log2(need)).long()
+    n_levels = int(level_needed.max()) + 1
+    window = finite
+    window_max = torch.empty_like(finite)
+    for level in range(n_levels):
+        r = 1 << level
+        if level == 0:
+            padded = F.pad(window[:, None], (1, 1, 1, 1), value=-1.0)[:, 0]
+            window = F.max_pool2d(padded[:, None], 3, stride=1)[:, 0]
+        else:
+            half = r // 2
+            padded = F.pad(window, (half, half, half, half), value=-1.0)
+            h, w = window.shape[-2:]
+            window = torch.maximum(
+                torch.maximum(padded[:, :h, :w], padded[:, :h, 2 * half :]),
+                torch.maximum(padded[:, 2 * half :, :w], padded[:, 2 * half :, 2 * half :]),
+            )
+        window_max = torch.where(level_needed == level, window, window_max)
+    return finite >= config.prune_depth_ratio * window_max
 
 
 def medial_axis(mask: Tensor, config: Optional[SilhouetteConfig] = None) -> Tensor:
@@ -265,6 +315,31 @@ def medial_axis(mask: Tensor, config: Optional[SilhouetteConfig] = None) -> Tens
     fg = batch[:, 0]
     dist2, feat_row, feat_col = _edt_squared(fg)
     return from_batch(_medial_axis_from_features(fg, dist2, feat_row, feat_col, config)[:, None], single)
+
+
+def _distance_to_deeper_axis(foreground: Tensor, axis: Tensor, depth: Tensor, ratio: float) -> Tensor:
+    """Distance from each object pixel to the nearest axis point about as deep as itself.
+
+    Eq. 5 measures ``d_M`` along the ray from the nearest contour point through ``p``,
+    on which the depth grows up to the axis, so the axis point it meets is deeper than
+    ``p``. Pixels are split into depth layers ``[t, ratio * t)`` (``t`` = powers of
+    ``ratio``) and each layer only sees axis points of depth ``>= t``: a shallow
+    spurious axis point left by contour noise then serves only pixels shallower than
+    ``ratio`` times its depth, instead of capping ``d_M`` by about ``d_B`` over the
+    whole object. ``ratio = inf`` gives the plain distance to the axis.
+    """
+    out = torch.zeros_like(depth)
+    lower = 0.0
+    while True:
+        upper = max(1.0, lower * ratio)
+        in_layer = foreground & (depth >= lower) & (depth < upper)
+        if bool(in_layer.any()):
+            targets = axis & (depth >= lower)
+            d2 = _edt_squared(~targets, in_layer)[0]
+            out = torch.where(in_layer, d2.sqrt(), out)
+        if not bool((foreground & (depth >= upper)).any()):
+            return out
+        lower = upper
 
 
 @dataclass(frozen=True)
@@ -319,7 +394,7 @@ def silhouette_distances(mask: Tensor, config: Optional[SilhouetteConfig] = None
     Args:
         mask: :math:`(B, 1, H, W)` bool or 0/1 object mask, non-empty, not the whole
             image; several components, holes and border contact are fine. A single
-            :math:`(1, H, W)` or :math:`(H, W)` mask gives fields without ``B``.
+            :math:`(1, H, W)` or :math:`(H, W)` mask gives :math:`(1, H, W)` fields.
         config: :class:`SilhouetteConfig`.
 
     Returns:
@@ -331,7 +406,7 @@ def silhouette_distances(mask: Tensor, config: Optional[SilhouetteConfig] = None
     dist2, feat_row, feat_col = _edt_squared(fg)
     axis = _medial_axis_from_features(fg, dist2, feat_row, feat_col, config)
     d_boundary = torch.where(fg, dist2.sqrt() - 0.5, 0.0)
-    d_medial = torch.where(fg, _edt_squared(~axis, fg)[0].sqrt(), 0.0)
+    d_medial = _distance_to_deeper_axis(fg, axis, dist2.sqrt(), config.depth_layer_ratio)
     depth = d_boundary + d_medial
     d_rel = torch.where(fg, d_boundary / depth.clamp_min(1e-6), 0.0)
     beta = _direction_to_contour(fg, d_rel, depth, feat_row, feat_col, config.gradient_sigma)
