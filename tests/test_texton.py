@@ -1,0 +1,145 @@
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from scipy import ndimage
+from skimage.color import rgb2lab
+
+from sfs_torch.texton import (
+    N_TEXTON_FILTERS,
+    TEXTON_FILTER_NAMES,
+    TextonConfig,
+    linear_rgb_to_lab,
+    texton_features,
+    texton_filter_bank,
+)
+
+
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    return np.where(linear > 0.0031308, 1.055 * np.power(np.clip(linear, 0.0031308, None), 1 / 2.4) - 0.055, 12.92 * linear)
+
+
+def scipy_bank(lab: np.ndarray, radius: int) -> np.ndarray:
+    """The 17 responses of an (3, H, W) Lab image with scipy.ndimage, zero padded."""
+    kw = dict(mode="constant", cval=0.0, radius=radius)
+    out = [ndimage.gaussian_filter(lab[c], s, **kw) for c in range(3) for s in (1, 2, 4)]
+    out += [ndimage.gaussian_laplace(lab[0], s, **kw) for s in (1, 2, 4, 8)]
+    for s in (2, 4):
+        out.append(ndimage.gaussian_filter(lab[0], s, order=(0, 1), **kw))  # x right
+        out.append(-ndimage.gaussian_filter(lab[0], s, order=(1, 0), **kw))  # y up
+    return np.stack(out)
+
+
+class TestTextonFilterBank:
+    @pytest.mark.parametrize("kernel_size", [5, 7])
+    def test_equals_scipy(self, kernel_size):
+        rng = np.random.default_rng(0)
+        lab = rng.normal(size=(3, 13, 16))
+        bank = texton_filter_bank(kernel_size, dtype=torch.float64)
+        got = F.conv2d(torch.from_numpy(lab)[None], bank, padding=kernel_size // 2)[0].numpy()
+        np.testing.assert_allclose(got, scipy_bank(lab, kernel_size // 2), atol=1e-6, rtol=0)
+
+    def test_structure(self):
+        bank = texton_filter_bank()
+        assert bank.shape == (N_TEXTON_FILTERS, 3, 5, 5) == (17, 3, 5, 5)
+        assert len(TEXTON_FILTER_NAMES) == 17 and TEXTON_FILTER_NAMES[13:15] == ("dx_L_s2", "dy_L_s2")
+        torch.testing.assert_close(bank[:9].sum((-1, -2)).sum(1), torch.ones(9))  # normalised Gaussians
+        assert float(bank[9:, 1:].abs().max()) == 0.0  # LoG and derivatives only on L
+        # y is up: the derivative is positive when intensity grows towards row 0
+        ramp = torch.arange(5.0, 0.0, -1.0).view(1, 1, 5, 1).expand(1, 3, 5, 5)
+        resp = F.conv2d(ramp, bank)[0, :, 0, 0]
+        assert float(resp[14]) > 0 and abs(float(resp[13])) < 1e-6
+
+    def test_cached(self, device, dtype):
+        a = texton_filter_bank(5, device=device, dtype=dtype)
+        assert a is texton_filter_bank(5, device=device, dtype=dtype)
+        assert a.device.type == device.type and a.dtype == dtype
+
+    def test_exception(self):
+        for bad in (4, 0, 2.5):
+            with pytest.raises(ValueError, match="kernel_size"):
+                texton_filter_bank(bad)
+
+
+class TestLinearRgbToLab:
+    def test_matches_skimage(self, dtype):
+        rng = np.random.default_rng(1)
+        lin = rng.random((2, 3, 6, 7))
+        lin[0, :, 0, 0] = 0.0  # black
+        lin[0, :, 0, 1] = 0.002  # linear segment of the sRGB curve
+        got = linear_rgb_to_lab(torch.from_numpy(lin).to(dtype)).double().numpy()
+        ref = np.stack([rgb2lab(srgb_encode(x).transpose(1, 2, 0)).transpose(2, 0, 1) for x in lin])
+        np.testing.assert_allclose(got, ref, atol=1e-3 if dtype == torch.float32 else 1e-8)
+        assert np.abs(got[0, :, 0, 0]).max() < 1e-4  # black is Lab 0: zero padding == black border
+
+    def test_unbatched_and_exception(self):
+        x = torch.rand(3, 4, 5)
+        torch.testing.assert_close(linear_rgb_to_lab(x), linear_rgb_to_lab(x[None])[0])
+        with pytest.raises(ValueError, match="image"):
+            linear_rgb_to_lab(torch.rand(1, 4, 4, 4))
+
+
+class TestTextonFeatures:
+    def test_equals_scipy_pipeline(self):
+        rng = np.random.default_rng(2)
+        lin = rng.random((3, 12, 10))
+        mask = rng.random((12, 10)) < 0.7
+        got = texton_features(torch.from_numpy(lin)[None], torch.from_numpy(mask)[None, None])[0].numpy()
+        lab = rgb2lab(srgb_encode(lin * mask).transpose(1, 2, 0)).transpose(2, 0, 1)
+        np.testing.assert_allclose(got, scipy_bank(lab, 2), atol=1e-5)
+
+    def test_patch_equals_full_image(self):
+        """Training side: 5x5 patches, background zeroed, 'valid' == 'same' at the centre."""
+        g = torch.Generator().manual_seed(0)
+        image = torch.rand(1, 3, 20, 24, generator=g, dtype=torch.float64)
+        yy, xx = torch.meshgrid(torch.arange(20), torch.arange(24), indexing="ij")
+        mask = ((yy - 9) ** 2 + (xx - 14) ** 2 < 60)[None, None]
+        full = texton_features(image, mask)
+        # patches around every object pixel, zero outside the mask and the image
+        padded = F.pad(image * mask, (2, 2, 2, 2))
+        patches = F.unfold(padded, 5).view(3, 5, 5, 20, 24).permute(3, 4, 0, 1, 2)
+        rows, cols = torch.nonzero(mask[0, 0], as_tuple=True)
+        sel = patches[rows, cols]  # (N, 3, 5, 5)
+        got = texton_features(sel, padding="valid")
+        assert got.shape == (len(rows), 17, 1, 1)
+        torch.testing.assert_close(got[:, :, 0, 0], full[0][:, rows, cols].T, atol=1e-10, rtol=0)
+
+    def test_background_ignored(self):
+        image = torch.rand(1, 3, 9, 9)
+        mask = torch.zeros(1, 1, 9, 9, dtype=torch.bool)
+        mask[..., 2:7, 2:7] = True
+        other = torch.where(mask, image, torch.rand(1, 3, 9, 9))
+        torch.testing.assert_close(texton_features(image, mask), texton_features(other, mask))
+        assert not torch.allclose(texton_features(image), texton_features(other))
+
+    def test_cardinality(self, device, dtype):
+        image = torch.rand(2, 3, 8, 11, device=device, dtype=dtype)
+        mask = torch.rand(2, 1, 8, 11, device=device) < 0.8
+        out = texton_features(image, mask)
+        assert out.shape == (2, 17, 8, 11) and out.dtype == dtype and out.device.type == device.type
+        for b in range(2):
+            torch.testing.assert_close(out[b], texton_features(image[b], mask[b]))
+            torch.testing.assert_close(out[b], texton_features(image[b], mask[b, 0]))
+        assert texton_features(image, padding="valid").shape == (2, 17, 4, 7)
+        assert texton_features(image, kernel_size=TextonConfig().kernel_size).shape == (2, 17, 8, 11)
+
+    def test_gradcheck(self):
+        g = torch.Generator().manual_seed(3)
+        image = (0.05 + 0.9 * torch.rand(1, 3, 5, 6, generator=g, dtype=torch.float64)).requires_grad_()
+        mask = torch.ones(1, 1, 5, 6, dtype=torch.bool)
+        mask[..., 0, 0] = False
+        assert torch.autograd.gradcheck(lambda x: texton_features(x, mask), (image,))
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="padding"):
+            texton_features(torch.rand(1, 3, 5, 5), padding="reflect")
+        with pytest.raises(ValueError, match="image"):
+            texton_features(torch.rand(1, 4, 5, 5))
+        with pytest.raises(ValueError, match="mask"):
+            texton_features(torch.rand(1, 3, 5, 5), torch.ones(1, 1, 4, 5, dtype=torch.bool))
+        with pytest.raises(ValueError, match="mask"):
+            texton_features(torch.rand(1, 3, 5, 5), torch.full((1, 1, 5, 5), 0.5))
+        with pytest.raises(ValueError, match="kernel_size"):
+            texton_features(torch.rand(1, 3, 3, 3), padding="valid")
+        with pytest.raises(ValueError, match="image"):
+            texton_features(torch.full((1, 3, 5, 5), float("nan")))
