@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from safetensors.torch import load_file, save_file
 from torch import Tensor
-from tqdm.auto import tqdm
+from tqdm import tqdm
 
 from .rendering import random_view_rotations, render_normals
 from .shapes import (
@@ -144,14 +144,14 @@ def _check_config(cfg: DatabaseConfig) -> None:
         raise ValueError(f"scale must lie in (0, 1) so that the silhouette stays inside the image, got {cfg.scale}")
 
 
-def _mesh_root(collection: str) -> Optional[Path]:
+def _mesh_root(collection: str, progress: bool = False) -> Optional[Path]:
     """The mesh sources' directory, fetched first when the collection needs them."""
-    if collection == "blobby":
+    if collection not in COLLECTIONS or collection == "blobby":
         return None
     root = mesh_dir()
     if not sources_present(root):
         log.info("example meshes missing under %s: fetching them from PyPI (one time)", root)
-        fetch_sources(root)
+        fetch_sources(root, progress=progress)
     return root
 
 
@@ -204,8 +204,9 @@ def build_database(cfg: DatabaseConfig, *, progress: bool = True) -> GeometryDat
         ValueError: an invalid configuration.
         sfs_torch.shapes.MeshSourceError: the PyPI meshes are needed but cannot be fetched.
     """
+    _check_config(cfg)
+    root = _mesh_root(cfg.collection, progress)
     split = database_split(cfg)
-    root = _mesh_root(cfg.collection)
     generator = torch.Generator().manual_seed(cfg.seed)
     parts = {k: [] for k in _FIELDS}
     for shape_id, name in enumerate(tqdm(split.train, desc="geometry database", unit="shape", disable=not progress)):

@@ -30,6 +30,7 @@ from typing import Dict, List, Optional, Sequence, Union
 
 import numpy as np
 import trimesh
+from tqdm import tqdm
 
 __all__ = [
     "Shape",
@@ -78,14 +79,14 @@ SOURCES: Dict[str, MeshSource] = {
             r"|dm_control/locomotion/walkers/assets/fruitfly_v2/thorax_body\.msh"
             r"|dm_control/locomotion/walkers/assets/build_fruitfly/assets/[^/]+\.msh"
             r"|dm_control/mjcf/test_assets/meshes/cube\.msh"
-            r"|dm_control-1\.0\.50\.dist-info/(METADATA|licenses/LICENSE)"
+            r"|dm_control-1\.0\.50\.dist-info/(METADATA|licenses/(LICENSE|AUTHORS))"
         ),
     ),
     "pybullet": MeshSource(
         package="pybullet",
         version="3.2.7",
         license="zlib",
-        members=r"pybullet_data/random_urdfs/\d+/\d+\.obj|pybullet-3\.2\.7\.dist-info/(METADATA|LICENSE\.txt)",
+        members=r"pybullet_data/random_urdfs/\d+/\d+\.obj|pybullet-3\.2\.7\.dist-info/(METADATA|LICENSE\.txt|AUTHORS\.txt)",
         pip_args=(
             "--only-binary=:all:",
             "--platform=manylinux2014_x86_64",
@@ -346,8 +347,6 @@ def fetch_sources(root: PathLike, *, progress: bool = True) -> Path:
 
 
 def _extract(wheel: Path, target: Path, members: "re.Pattern[str]", *, progress: bool) -> None:
-    from tqdm.auto import tqdm
-
     digest = hashlib.sha256(wheel.read_bytes()).hexdigest()
     target.mkdir(parents=True, exist_ok=True)
     with zipfile.ZipFile(wheel) as archive:

@@ -57,21 +57,22 @@ class TestBuildDatabase:
         assert torch.allclose(cos_b**2 + sin_b**2, torch.ones_like(d_rel), atol=1e-5)
 
     def test_samples_consistent_with_rendered_view(self, tiny_db):
-        # Re-render shape 0, view 0 exactly as the build does: its rotations are the first draws.
+        # Re-render shape 0 exactly as the build does: its rotations are the first draws.
         split = database_split(TINY)
-        rot = random_view_rotations(TINY.n_views, torch.Generator().manual_seed(TINY.seed))[0]
-        view = render_normals(load_shape(split.train[0]).mesh, rot, TINY.resolution, scale=TINY.scale)
-        sil = silhouette_features(view.mask[None])[0]
-        pix = F.unfold(F.pad(view.normals[None], (2, 2, 2, 2)), 5)[0].T  # (H W, 75) all patches
-        feats = sil.flatten(1).T  # (H W, 3)
-        pick = (tiny_db.shape_id == 0) & (tiny_db.view_id == 0)
-        samples = tiny_db.normals[pick].flatten(1)
-        dist = torch.cdist(samples.double(), pix.double(), compute_mode="donot_use_mm_for_euclid_dist")
-        best = dist.argmin(1)
-        assert dist.min(1).values.max() == 0  # every patch is exactly one of the view's patches
-        assert torch.equal(tiny_db.silhouette[pick], feats[best])
-        assert view.mask.flatten()[best].all()
-        assert best.unique().numel() == best.numel()  # drawn without replacement
+        mesh = load_shape(split.train[0]).mesh
+        rots = random_view_rotations(TINY.n_views, torch.Generator().manual_seed(TINY.seed))
+        views = [render_normals(mesh, rot, TINY.resolution, scale=TINY.scale) for rot in rots]
+        sil = silhouette_features(torch.stack([v.mask for v in views]))
+        for k, view in enumerate(views):
+            pix = F.unfold(F.pad(view.normals[None], (2, 2, 2, 2)), 5)[0].T  # (H W, 75): every patch
+            pick = (tiny_db.shape_id == 0) & (tiny_db.view_id == k)
+            dist = torch.cdist(tiny_db.normals[pick].flatten(1).double(), pix.double(),
+                               compute_mode="donot_use_mm_for_euclid_dist")
+            best = dist.argmin(1)
+            assert dist.min(1).values.max() == 0  # every sample is exactly one of the view's patches
+            assert torch.equal(tiny_db.silhouette[pick], sil[k].flatten(1).T[best])
+            assert view.mask.flatten()[best].all()
+            assert best.unique().numel() == best.numel() == TINY.samples_per_view  # without replacement
 
     def test_deterministic(self, tiny_db):
         again = build_database(TINY, progress=False)
