@@ -205,12 +205,12 @@ def _np(x):
     return x.detach().cpu().double().numpy()
 
 
-def run(sizes, repeats, quick):
+def run(sizes, repeats):
     rows = []
     for size in sizes:
         for name, (z, n, mask) in surfaces(size).items():
-            zn, nn, mn = z.numpy(), n.numpy(), mask.numpy()
-            n32, m = n.float()[None], mask[None, None]
+            zn, mn = z.numpy(), mask.numpy()
+            m = mask[None, None]
             for noise in ("clean", "outliers5%"):
                 nin = n if noise == "clean" else corrupt(n, mask, 0.05, seed=size)
                 n32 = nin.float()[None]
@@ -221,8 +221,6 @@ def run(sizes, repeats, quick):
                     "dct": lambda: dct_poisson(nin.numpy(), mn),
                     "fc": lambda: frankot_chellappa(nin.numpy(), mn),
                 }
-                if quick:
-                    methods.pop("scipy") if size > 128 else None
                 for method, fn in methods.items():
                     depth, sec = timed(fn, repeats)
                     rows.append(dict(size=size, surface=name, input=noise, method=method, rmse=rmse(depth, zn, mn), seconds=sec))
@@ -267,7 +265,7 @@ def main():
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
     sizes, repeats = ([128], 1) if args.quick else (args.sizes, args.repeats)
-    rows = run(sizes, repeats, args.quick)
+    rows = run(sizes, repeats)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, best of {repeats} (after a warm-up)")
     print(f"{'size':>5} {'surface':<13} {'input':<13} {'method':<12} {'rmse':>10} {'seconds':>8}")
     for r in rows:
