@@ -4,22 +4,24 @@ The forest is retrained for every test lighting, so training speed dominates the
 method's cost. All trees grow at once, one tree level per Python iteration, with
 histogram split search:
 
-1. every feature is cut once into ``n_bins`` quantile bins (edges are data values, so a
-   bin threshold is also an exact threshold on the raw feature);
-2. each tree draws a random ``sample_fraction`` of the rows; the (tree, row) pairs of
-   the nodes still being grown are kept grouped by node, so the histogram writes of
-   one node stay in a small, cache-resident block;
+1. every feature is cut once into ``n_bins`` quantile bins (the edges are data values,
+   so a bin threshold is also an exact threshold on the raw feature);
+2. each tree draws a random ``sample_fraction`` of the rows (without replacement); the
+   (tree, row) pairs of the nodes still growing are kept grouped by node, so the
+   histogram writes of one node stay in a small, cache-resident block;
 3. per level, for every node of every tree and each of its ``max_features`` random
-   features, one ``bincount`` per statistic accumulates the count and the vector sum
-   of the normals per bin; a cumulative sum over bins gives both children of every
-   candidate threshold, and all candidates are scored at once by the children's
+   features, ``index_add_`` accumulates per bin the count and the vector sum of the
+   normals (packed as two complex numbers, ``count + i n_x`` and ``n_y + i n_z``, which
+   halves the scatter work); a cumulative sum over bins gives both children of every
+   threshold, and all thresholds that change the partition and leave
+   ``min_samples_leaf`` rows on each side are scored at once by the children's
    count-weighted vMF entropy ``n_L H(kappa_L) + n_R H(kappa_R)``;
-4. a node splits at its best candidate when that lowers the entropy below the parent's
-   ``n H(kappa)``, both children keep ``min_samples_leaf`` rows and the depth is below
-   ``max_depth``; otherwise it becomes a leaf.
+4. a node splits at its best threshold when that lowers the entropy below the
+   parent's ``n H(kappa)`` and the depth is below ``max_depth``; otherwise it is a leaf.
 
 Nodes of all trees live in one flat table in level order; a leaf points to itself
-with threshold ``+inf``, so prediction is ``depth`` rounds of gathers.
+with threshold ``+inf``, so prediction is ``depth`` rounds of 1-D gathers.
+See ``docs/forest.md`` for the choices and measurements.
 """
 from __future__ import annotations
 
@@ -208,9 +210,9 @@ class ForestConfig:
     _target_: str = "sfs_torch.forest.VMFForest"
     n_trees: int = 8
     max_depth: int = 14
-    min_samples_leaf: int = 5
+    min_samples_leaf: int = 10
     max_features: Union[int, float] = 8
-    n_bins: int = 32
+    n_bins: int = 64
     sample_fraction: float = 0.9
     seed: int = 0
 
