@@ -367,7 +367,7 @@ def _direction_to_contour(
     foreground: Tensor, d_rel: Tensor, depth: Tensor, feat_row: Tensor, feat_col: Tensor, sigma: float
 ) -> Tensor:
     """``beta`` of Eq. 7 for ``(B, H, W)`` maps, with the feature transform as fallback."""
-    b, h, w = foreground.shape
+    h, w = foreground.shape[-2:]
     x = d_rel[:, None]
     if sigma > 0:
         size = 2 * math.ceil(3 * sigma) + 1

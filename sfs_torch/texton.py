@@ -22,7 +22,6 @@ its centre pixel.
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 from typing import Optional, Tuple
 
