@@ -63,7 +63,8 @@ class IntegrabilityConfig:
     """Options of :class:`Integrator` (and of :func:`integrate_normals`).
 
     Attributes:
-        method: ``"l2"`` (least squares), ``"l1"`` (robust, IRLS) or ``"conv"`` (convex
+        method: ``None`` (no refinement: the pipeline keeps the forest's per-pixel
+            normals), ``"l2"`` (least squares), ``"l1"`` (robust, IRLS) or ``"conv"`` (convex
             combination of candidate normals).
         max_iter: conjugate-gradient iterations per linear solve.
         tol: relative residual at which a linear solve stops.
@@ -78,7 +79,7 @@ class IntegrabilityConfig:
     """
 
     _target_: str = "sfs_torch.integrability.Integrator"
-    method: str = "l2"
+    method: Optional[str] = None
     max_iter: int = 500
     tol: float = 1e-5
     min_nz: float = 0.05

@@ -1,0 +1,390 @@
+"""The whole method (paper Fig. 2): one image and its mask in, normals, lighting, confidence out.
+
+1. silhouette features of the test mask (:mod:`sfs_torch.silhouette`);
+2. reflectance map estimated from the silhouette (:mod:`sfs_torch.reflectance_map`),
+   unless the lighting is given;
+3. training set for this lighting: the cached example-geometry patches
+   (:mod:`sfs_torch.geometry_db`) shaded with it, noised and clipped, with colour,
+   texton and silhouette features computed exactly as on the test image;
+4. a von Mises-Fisher regression forest trained on it (:mod:`sfs_torch.forest`),
+   cached by lighting, predicts every object pixel independently;
+5. perspective: each normal rotated towards the camera centre (:mod:`sfs_torch.camera`);
+6. optional integrability refinement (:mod:`sfs_torch.integrability`).
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import time
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Dict, Iterator, Optional, Sequence, Union
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+from torch import Tensor
+
+from ._checks import check_finite, check_mask, check_same_size, to_batch
+from .camera import CameraConfig, centroid_rotation, rotate_normals_to_camera
+from .forest import VMF, ForestConfig, VMFForest, sample_vmf
+from .geometry_db import DatabaseConfig, GeometryDatabase, cache_dir, load_database
+from .integrability import IntegrabilityConfig, integrate_convex, integrate_normals
+from .lighting import render_sh, rotate_sh
+from .reflectance_map import ReflectanceMapConfig, estimate_lighting
+from .silhouette import SilhouetteConfig, silhouette_features
+from .texton import TextonConfig, texton_features
+
+__all__ = ["FeatureConfig", "TrainingConfig", "PipelineConfig", "Estimate", "estimate", "training_set", "pixel_features"]
+
+log = logging.getLogger(__name__)
+
+INTEGRATION_METHODS = (None, "l2", "l1", "conv")
+
+
+@dataclass
+class FeatureConfig:
+    """Which per-pixel features the forest sees (the paper's Table 1a ablation)."""
+
+    rgb: bool = True
+    silhouette: bool = True
+    texton: bool = True
+
+
+@dataclass
+class TrainingConfig:
+    """How the per-lighting training set is made (Sec. 5, 9.1).
+
+    Attributes:
+        noise_sigma: std of the Gaussian noise added to the shaded patches before
+            clipping to [0, 1] (the paper: 0.001).
+        seed: seed of that noise.
+        cache_forests: keep trained forests on disk, keyed by lighting and configuration.
+        conv_samples_per_tree: samples drawn from each tree's leaf for ``integrate="conv"``.
+    """
+
+    noise_sigma: float = 0.001
+    seed: int = 0
+    cache_forests: bool = True
+    conv_samples_per_tree: int = 1
+
+
+@dataclass
+class PipelineConfig:
+    """Every option of :func:`estimate`; ``conf/`` holds the same defaults as YAML."""
+
+    database: DatabaseConfig = field(default_factory=DatabaseConfig)
+    silhouette: SilhouetteConfig = field(default_factory=SilhouetteConfig)
+    texton: TextonConfig = field(default_factory=TextonConfig)
+    reflectance_map: ReflectanceMapConfig = field(default_factory=ReflectanceMapConfig)
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    training: TrainingConfig = field(default_factory=TrainingConfig)
+    forest: ForestConfig = field(default_factory=ForestConfig)
+    integrate: IntegrabilityConfig = field(default_factory=IntegrabilityConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Result of :func:`estimate`.
+
+    Attributes:
+        normals: :math:`(B, 3, H, W)` camera-frame unit normals, 0 outside the mask.
+        confidence: :math:`(B, 1, H, W)` forest concentration (vMF kappa), 0 outside.
+        lighting: :math:`(B, 3, 9)` estimated (or given) SH lighting, camera frame.
+        depth: :math:`(B, 1, H, W)` from integrability refinement, else ``None``.
+        mask: :math:`(B, 1, H, W)` the object mask used.
+        timings: seconds spent per stage, summed over the batch.
+    """
+
+    normals: Tensor
+    confidence: Tensor
+    lighting: Tensor
+    depth: Optional[Tensor]
+    mask: Tensor
+    timings: Dict[str, float]
+
+
+class _Timer:
+    def __init__(self) -> None:
+        self.seconds: Dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, stage: str) -> Iterator[None]:
+        start = time.perf_counter()
+        yield
+        self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - start
+
+
+def resolve_config(config: Union[None, PipelineConfig, DictConfig, Dict[str, Any]]) -> PipelineConfig:
+    """Merge a partial config (dataclass, dict or omegaconf) onto the defaults and validate it."""
+    base = OmegaConf.structured(PipelineConfig)
+    if config is None:
+        return OmegaConf.to_object(base)  # type: ignore[return-value]
+    try:
+        override = config if isinstance(config, (dict, DictConfig)) else OmegaConf.structured(config)
+        return OmegaConf.to_object(OmegaConf.merge(base, override))  # type: ignore[return-value]
+    except OmegaConfBaseException as err:
+        raise ValueError(f"config does not fit the pipeline's options: {err}") from None
+
+
+def pixel_features(image: Tensor, mask: Tensor, features: FeatureConfig, texton_cfg: TextonConfig) -> Tensor:
+    """Per-pixel forest features of a test image, in the same order as :func:`training_set`.
+
+    Args:
+        image: :math:`(B, 3, H, W)` linear RGB.
+        mask: :math:`(B, 1, H, W)` bool.
+
+    Returns:
+        :math:`(B, F, H, W)` features (rgb, silhouette, texton; as enabled).
+    """
+    parts = []
+    if features.rgb:
+        parts.append(image * mask)
+    if features.silhouette:
+        parts.append(silhouette_features(mask).to(image.dtype))
+    if features.texton:
+        parts.append(texton_features(image, mask, kernel_size=texton_cfg.kernel_size))
+    if not parts:
+        raise ValueError("config.features enables no feature: set at least one of rgb, silhouette, texton")
+    return torch.cat(parts, 1)
+
+
+@dataclass(frozen=True)
+class TrainingSet:
+    """Forest training data for one lighting: ``features (N, F)``, ``normals (N, 3)``."""
+
+    features: Tensor
+    normals: Tensor
+
+
+def training_set(
+    db: GeometryDatabase, sh: Tensor, features: FeatureConfig, texton_cfg: TextonConfig, noise_sigma: float, seed: int
+) -> TrainingSet:
+    """Shade the database patches with one lighting and compute their features (Sec. 5).
+
+    The patches are shaded, noised, clipped to [0, 1] and their background set to 0,
+    then filtered with the same texton bank and background rule as the test image
+    (``padding="valid"`` on a patch gives the centre pixel's response).
+
+    Args:
+        db: example-geometry patches, ``normals (N, 3, P, P)``, ``masks (N, 1, P, P)``.
+        sh: :math:`(3, 9)` lighting in the (orthographic) frame of the patches.
+
+    Returns:
+        :class:`TrainingSet` with features in the order of :func:`pixel_features`.
+    """
+    normals = db.normals.to(sh.device)
+    masks = db.masks.to(sh.device)
+    shaded = render_sh(normals, sh.expand(normals.shape[0], -1, -1))
+    generator = torch.Generator(device=sh.device).manual_seed(seed)
+    noisy = shaded + noise_sigma * torch.randn(shaded.shape, generator=generator, device=sh.device, dtype=shaded.dtype)
+    patches = noisy.clamp(0, 1) * masks
+    centre = db.normals.shape[-1] // 2
+    parts = []
+    if features.rgb:
+        parts.append(patches[:, :, centre, centre])
+    if features.silhouette:
+        parts.append(db.silhouette.to(sh.device, patches.dtype))
+    if features.texton:
+        parts.append(texton_features(patches, masks, kernel_size=texton_cfg.kernel_size, padding="valid")[:, :, 0, 0])
+    if not parts:
+        raise ValueError("config.features enables no feature: set at least one of rgb, silhouette, texton")
+    return TrainingSet(torch.cat(parts, 1), normals[:, :, centre, centre])
+
+
+def _forest_key(sh: Tensor, cfg: PipelineConfig) -> str:
+    payload = {
+        "lighting": np.round(sh.detach().double().cpu().numpy(), 6).tolist(),
+        "database": asdict(cfg.database),
+        "features": asdict(cfg.features),
+        "texton": asdict(cfg.texton),
+        "training": {"noise_sigma": cfg.training.noise_sigma, "seed": cfg.training.seed},
+        "forest": asdict(cfg.forest),
+    }
+    return hashlib.sha256(repr(payload).encode()).hexdigest()[:24]
+
+
+def _trained_forest(sh: Tensor, db: GeometryDatabase, cfg: PipelineConfig, timer: _Timer) -> VMFForest:
+    """Train (or fetch from the cache) the forest for one lighting."""
+    path = cache_dir() / "forests" / f"{_forest_key(sh, cfg)}.safetensors"
+    forest: Optional[VMFForest] = None
+    if cfg.training.cache_forests and path.exists():
+        try:
+            forest = VMFForest.load(path).to(sh.device)
+            log.info("reusing the forest trained for this lighting: %s", path)
+        except Exception as err:  # a corrupt cache entry is retrained, never trusted
+            log.warning("ignoring unreadable cached forest %s (%s)", path, err)
+    if forest is None:
+        with timer("shade database + features"):
+            data = training_set(db, sh, cfg.features, cfg.texton, cfg.training.noise_sigma, cfg.training.seed)
+        with timer("train forest"):
+            params = {k: v for k, v in asdict(cfg.forest).items() if k != "_target_"}
+            forest = VMFForest(**params, device=sh.device).fit(data.features, data.normals)
+        if cfg.training.cache_forests:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            forest.save(path)
+    return forest
+
+
+def _as_image_tensor(image: Any) -> Tensor:
+    if isinstance(image, np.ndarray):
+        if image.ndim != 3 or image.shape[-1] != 3:
+            raise ValueError(f"image as a numpy array must have shape (H, W, 3), got {image.shape}")
+        return torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32)).permute(2, 0, 1)
+    if not isinstance(image, Tensor):
+        raise TypeError(f"image must be a torch.Tensor or numpy array, got {type(image).__name__}")
+    return image
+
+
+def _as_mask_tensor(mask: Any, image: Tensor, single: bool) -> Tensor:
+    if isinstance(mask, np.ndarray):
+        mask = torch.from_numpy(np.ascontiguousarray(mask))
+    if not isinstance(mask, Tensor):
+        raise TypeError(f"mask must be a torch.Tensor or numpy array, got {type(mask).__name__}")
+    if mask.ndim == 2:
+        mask = mask[None, None]
+    elif mask.ndim == 3:
+        mask = mask[None] if single else mask[:, None]
+    if mask.ndim != 4 or mask.shape[1] != 1:
+        raise ValueError(f"mask must have shape (H, W), (1, H, W) or (B, 1, H, W), got {tuple(mask.shape)}")
+    return mask.to(image.device)
+
+
+def estimate(
+    image: Any,
+    mask: Any,
+    focal: Optional[float] = None,
+    principal_point: Optional[Sequence[float]] = None,
+    lighting: Optional[Tensor] = None,
+    integrate: Optional[str] = None,
+    config: Union[None, PipelineConfig, DictConfig, Dict[str, Any]] = None,
+    *,
+    progress: bool = True,
+) -> Estimate:
+    """Estimate normals, lighting and confidence of a diffuse object from one image.
+
+    Args:
+        image: linear RGB in [0, 1]: :math:`(3, H, W)` or :math:`(B, 3, H, W)` tensor, or
+            an :math:`(H, W, 3)` numpy array.
+        mask: object pixels, :math:`(H, W)`, :math:`(1, H, W)` or :math:`(B, 1, H, W)`,
+            bool or {0, 1}.
+        focal: focal length in pixels for a perspective camera; ``None``: orthographic
+            (or ``config.camera.focal``).
+        principal_point: ``(cx, cy)`` in pixels; default the image centre.
+        lighting: known SH lighting :math:`(3, 9)` / :math:`(B, 3, 9)` in the camera
+            frame; skips the reflectance-map estimate.
+        integrate: ``None``, ``"l2"``, ``"l1"`` or ``"conv"`` (or ``config.integrate.method``).
+        config: partial configuration merged onto the defaults (see ``conf/``).
+        progress: show progress bars (database build).
+
+    Returns:
+        :class:`Estimate`; tensors without the batch axis for unbatched input.
+
+    Raises:
+        ValueError: bad shapes, dtypes, values, empty or full masks, unknown options.
+    """
+    cfg = resolve_config(config)
+    focal = cfg.camera.focal if focal is None else focal
+    principal_point = cfg.camera.principal_point if principal_point is None else principal_point
+    integrate = cfg.integrate.method if integrate is None else integrate
+    if integrate not in INTEGRATION_METHODS:
+        raise ValueError(f"integrate must be one of {INTEGRATION_METHODS}, got {integrate!r}")
+    if focal is not None and not float(focal) > 0:
+        raise ValueError(f"focal must be a positive focal length in pixels, got {focal}")
+
+    image_t = _as_image_tensor(image)
+    image_b, single = to_batch(image_t, "image", 3)
+    if image_b.shape[1] != 3:
+        raise ValueError(f"image must have 3 colour channels (3, H, W) or (B, 3, H, W), got {tuple(image_t.shape)}")
+    if not image_b.is_floating_point():
+        raise ValueError(f"image must be floating point linear RGB in [0, 1], got {image_b.dtype}")
+    check_finite(image_b, "image")
+    if bool((image_b < 0).any()) or bool((image_b > 1).any()):
+        raise ValueError("image must hold linear RGB values in [0, 1]; rescale it (or decode 8/16-bit integers first)")
+    image_b = image_b.float()
+    mask_b = check_mask(_as_mask_tensor(mask, image_b, single))
+    check_same_size(image_b, "image", mask_b, "mask")
+
+    timer = _Timer()
+    batch = image_b.shape[0]
+    with timer("lighting"):
+        if lighting is None:
+            sh = estimate_lighting(image_b, mask_b, focal=focal, principal_point=principal_point, config=cfg.reflectance_map)
+        else:
+            sh = _as_lighting(lighting, batch).to(image_b.device)
+    with timer("database"):
+        db = load_database(cfg.database, progress=progress)
+    with timer("test features"):
+        feats = pixel_features(image_b, mask_b, cfg.features, cfg.texton)
+
+    normals = torch.zeros_like(image_b)
+    confidence = torch.zeros_like(mask_b, dtype=image_b.dtype)
+    candidates = []
+    for b in range(batch):
+        # Perspective: train in the object's own orthographic frame (the lighting seen
+        # from its centroid) and rotate every predicted normal to the camera afterwards.
+        local_sh = sh[b]
+        if focal is not None:
+            rot = centroid_rotation(mask_b[b : b + 1], focal, principal_point)[0]
+            local_sh = rotate_sh(sh[b], rot.T.to(sh.dtype))
+        forest = _trained_forest(local_sh, db, cfg, timer)
+        m = mask_b[b, 0]
+        rows = feats[b].permute(1, 2, 0)[m]
+        with timer("predict"):
+            pred: VMF = forest.predict(rows)
+        normals[b].permute(1, 2, 0)[m] = pred.mean.to(normals.dtype)
+        confidence[b, 0][m] = pred.kappa.to(confidence.dtype)
+        if integrate == "conv":
+            leaves = forest.predict_leaves(rows)
+            generator = torch.Generator(device=rows.device).manual_seed(cfg.training.seed)
+            samples = sample_vmf(leaves, cfg.training.conv_samples_per_tree, generator).flatten(1, 2)  # (N, S, 3)
+            cand = torch.zeros(samples.shape[1], 3, *m.shape, dtype=normals.dtype, device=normals.device)
+            cand.permute(2, 3, 0, 1)[m] = samples.to(cand.dtype)
+            candidates.append(cand)
+    if focal is not None:
+        normals = rotate_normals_to_camera(normals, focal, principal_point) * mask_b
+        candidates = [rotate_normals_to_camera(c, focal, principal_point) for c in candidates]
+
+    depth = None
+    if integrate is not None:
+        with timer(f"integrate ({integrate})"):
+            options = _solver_options(cfg.integrate, integrate)
+            if integrate == "conv":
+                surface = integrate_convex(
+                    torch.stack(candidates), mask_b, weights=confidence, focal=focal, principal_point=principal_point, **options
+                )
+            else:
+                surface = integrate_normals(
+                    normals, mask_b, method=integrate, weights=confidence, focal=focal, principal_point=principal_point, **options
+                )
+        depth, normals = surface.depth, surface.normals
+    for stage, seconds in timer.seconds.items():
+        log.info("%-28s %7.3f s", stage, seconds)
+
+    def out(x: Optional[Tensor]) -> Optional[Tensor]:
+        return x[0] if (single and x is not None) else x
+
+    return Estimate(
+        normals=out(normals), confidence=out(confidence), lighting=out(sh), depth=out(depth), mask=out(mask_b),
+        timings=dict(timer.seconds),
+    )
+
+
+def _solver_options(cfg: IntegrabilityConfig, method: str) -> Dict[str, Any]:
+    shared = {"max_iter": cfg.max_iter, "tol": cfg.tol, "min_nz": cfg.min_nz}
+    if method == "conv":
+        return {**shared, "conv_iter": cfg.conv_iter, "conv_prior": cfg.conv_prior}
+    return {**shared, "l1_iter": cfg.l1_iter, "l1_delta": cfg.l1_delta}
+
+
+def _as_lighting(lighting: Any, batch: int) -> Tensor:
+    sh = torch.as_tensor(lighting, dtype=torch.float32)
+    if sh.ndim == 2:
+        sh = sh[None].expand(batch, -1, -1)
+    if sh.ndim != 3 or sh.shape[1:] != (3, 9) or sh.shape[0] != batch:
+        raise ValueError(f"lighting must have shape (3, 9) or ({batch}, 3, 9), got {tuple(sh.shape)}")
+    check_finite(sh, "lighting")
+    return sh

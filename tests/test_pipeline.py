@@ -1,0 +1,142 @@
+import numpy as np
+import pytest
+import torch
+
+import sfs_torch
+from sfs_torch.lighting import natural_lightings, render_sh
+from sfs_torch.metrics import lmse, normal_metrics
+from sfs_torch.pipeline import PipelineConfig, resolve_config, training_set
+
+# A small database and forest keep these end-to-end tests to seconds; the accuracy of
+# the default configuration is measured in benchmarks/end_to_end.py.
+TINY = {
+    "database": {"collection": "blobby", "n_shapes": 12, "n_views": 4, "resolution": 64, "samples_per_view": 150, "n_eval_shapes": 2},
+    "forest": {"n_trees": 4, "max_depth": 10},
+}
+
+
+def sphere(size=64, radius=26.0):
+    c = torch.arange(size, dtype=torch.float32) + 0.5 - size / 2
+    yy, xx = torch.meshgrid(c, c, indexing="ij")
+    x, y = xx / radius, -yy / radius
+    r2 = x * x + y * y
+    mask = (r2 < 1)[None]
+    normals = torch.stack([x, y, torch.sqrt((1 - r2).clamp_min(0))]) * mask
+    return normals, mask
+
+
+@pytest.fixture(scope="module")
+def scene():
+    normals, mask = sphere()
+    sh = natural_lightings(0.7)["grace_cathedral"]
+    image = (render_sh(normals[None], sh[None])[0] * mask).clamp(0, 1)
+    return normals, mask, sh, image
+
+
+class TestEstimate:
+    def test_sphere_known_and_unknown_lighting(self, scene):
+        normals, mask, sh, image = scene
+        est = sfs_torch.estimate(image, mask, config=TINY, progress=False)
+        assert est.normals.shape == (3, 64, 64) and est.confidence.shape == (1, 64, 64)
+        assert float(lmse(est.lighting[None], sh[None])[0]) < 1e-3
+        assert float(normal_metrics(est.normals, normals, mask).median) < 5.0
+        known = sfs_torch.estimate(image, mask, lighting=sh, config=TINY, progress=False)
+        assert torch.equal(known.lighting, sh)
+        assert float(normal_metrics(known.normals, normals, mask).median) < 5.0
+
+    def test_outputs_are_unit_inside_and_zero_outside(self, scene):
+        _, mask, sh, image = scene
+        est = sfs_torch.estimate(image, mask, lighting=sh, config=TINY, progress=False)
+        norms = est.normals.norm(dim=0)
+        assert torch.allclose(norms[mask[0]], torch.ones(int(mask.sum())), atol=1e-5)
+        assert float(est.normals[:, ~mask[0]].abs().max()) == 0.0
+        assert bool((est.confidence[mask] > 0).all()) and float(est.confidence[~mask].abs().max()) == 0.0
+
+    def test_batch_equals_single(self, scene):
+        _, mask, sh, image = scene
+        flipped = image.flip(-1)
+        batch = sfs_torch.estimate(torch.stack([image, flipped]), torch.stack([mask, mask.flip(-1)]), config=TINY, progress=False)
+        one = sfs_torch.estimate(flipped, mask.flip(-1), config=TINY, progress=False)
+        assert torch.allclose(batch.normals[1], one.normals, atol=1e-5)
+        assert torch.allclose(batch.lighting[1], one.lighting, atol=1e-5)
+
+    def test_numpy_input(self, scene):
+        _, mask, sh, image = scene
+        est = sfs_torch.estimate(image.permute(1, 2, 0).numpy(), mask[0].numpy(), lighting=sh, config=TINY, progress=False)
+        ref = sfs_torch.estimate(image, mask, lighting=sh, config=TINY, progress=False)
+        assert torch.allclose(est.normals, ref.normals)
+
+    def test_perspective(self, scene):
+        _, mask, sh, image = scene
+        est = sfs_torch.estimate(image, mask, focal=60.0, lighting=sh, config=TINY, progress=False)
+        norms = est.normals.norm(dim=0)[mask[0]]
+        assert torch.allclose(norms, torch.ones_like(norms), atol=1e-5)
+        # the rim of a perspective sphere faces away from the optical axis more than orthographically
+        ortho = sfs_torch.estimate(image, mask, lighting=sh, config=TINY, progress=False)
+        assert not torch.allclose(est.normals, ortho.normals)
+
+    @pytest.mark.parametrize("method", ["l2", "l1"])
+    def test_integration_gives_depth(self, scene, method):
+        normals, mask, sh, image = scene
+        est = sfs_torch.estimate(image, mask, lighting=sh, integrate=method, config=TINY, progress=False)
+        assert est.depth.shape == (1, 64, 64)
+        # a sphere's centre is nearer the viewer than its rim
+        assert float(est.depth[0, 32, 32]) > float(est.depth[0, 32, 8]) + 5
+        assert float(normal_metrics(est.normals, normals, mask).median) < 8.0
+
+    def test_config_ablation(self, scene):
+        normals, mask, sh, image = scene
+        rgb_only = dict(TINY, features={"rgb": True, "silhouette": False, "texton": False})
+        est = sfs_torch.estimate(image, mask, lighting=sh, config=rgb_only, progress=False)
+        assert float(normal_metrics(est.normals, normals, mask).median) < 30.0
+
+    def test_exceptions(self, scene):
+        _, mask, sh, image = scene
+        with pytest.raises(ValueError, match="image"):
+            sfs_torch.estimate(image[:2], mask, config=TINY)
+        with pytest.raises(ValueError, match="same batch size and height/width"):
+            sfs_torch.estimate(image, mask[:, :32], config=TINY)
+        with pytest.raises(ValueError, match=r"\[0, 1\]"):
+            sfs_torch.estimate(image + 2, mask, config=TINY)
+        nan = image.clone()
+        nan[0, 0, 0] = float("nan")
+        with pytest.raises(ValueError, match="image contains 1 NaN"):
+            sfs_torch.estimate(nan, mask, config=TINY)
+        with pytest.raises(ValueError, match="mask is empty"):
+            sfs_torch.estimate(image, torch.zeros_like(mask), config=TINY)
+        with pytest.raises(ValueError, match="whole image"):
+            sfs_torch.estimate(image, torch.ones_like(mask), config=TINY)
+        with pytest.raises(ValueError, match="integrate"):
+            sfs_torch.estimate(image, mask, integrate="l3", config=TINY)
+        with pytest.raises(ValueError, match="lighting"):
+            sfs_torch.estimate(image, mask, lighting=torch.zeros(3, 4), config=TINY)
+        with pytest.raises(ValueError, match="focal"):
+            sfs_torch.estimate(image, mask, focal=-5.0, config=TINY)
+        with pytest.raises(ValueError, match="no feature"):
+            sfs_torch.estimate(image, mask, lighting=sh, config=dict(TINY, features={"rgb": False, "silhouette": False, "texton": False}))
+
+
+class TestTrainingSet:
+    def test_centre_colour_is_the_shaded_centre_normal(self):
+        from sfs_torch.geometry_db import DatabaseConfig, load_database
+        from sfs_torch.pipeline import FeatureConfig
+        from sfs_torch.texton import TextonConfig
+
+        db = load_database(DatabaseConfig(**TINY["database"]), progress=False)
+        sh = natural_lightings(0.5)["uffizi_gallery"]
+        data = training_set(db, sh, FeatureConfig(), TextonConfig(), noise_sigma=0.0, seed=0)
+        shaded = render_sh(data.normals[:, :, None, None], sh[None].expand(len(data.normals), -1, -1))[:, :, 0, 0]
+        assert torch.allclose(data.features[:, :3], shaded.clamp(0, 1), atol=1e-6)
+        assert torch.equal(data.features[:, 3:6], db.silhouette)
+        assert data.features.shape[1] == 3 + 3 + 17
+
+
+class TestConfig:
+    def test_partial_dict_merges_onto_defaults(self):
+        cfg = resolve_config({"forest": {"n_trees": 3}})
+        assert isinstance(cfg, PipelineConfig) and cfg.forest.n_trees == 3
+        assert cfg.database == PipelineConfig().database
+
+    def test_unknown_key_is_rejected(self):
+        with pytest.raises(ValueError, match="n_treez"):
+            resolve_config({"forest": {"n_treez": 3}})
