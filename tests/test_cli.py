@@ -1,0 +1,91 @@
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from sfs_torch import io
+from sfs_torch.lighting import natural_lightings, render_sh
+
+TINY = [
+    "database=blobby",
+    "database.n_shapes=12",
+    "database.n_views=4",
+    "database.resolution=64",
+    "database.n_eval_shapes=2",
+    "forest.n_trees=4",
+    "forest.max_depth=10",
+]
+SPEC_FILES = ["normals.npy", "normals.png", "lighting.json", "reflectance_map.png", "confidence.png"]
+
+
+def run_cli(args, cwd):
+    return subprocess.run(
+        [sys.executable, "-c", "from sfs_torch.cli import main; main()", *args],
+        cwd=cwd, capture_output=True, text=True, timeout=600,
+    )
+
+
+def write_sphere(tmp_path, size=48, radius=18.0):
+    c = torch.arange(size, dtype=torch.float32) + 0.5 - size / 2
+    yy, xx = torch.meshgrid(c, c, indexing="ij")
+    x, y = xx / radius, -yy / radius
+    r2 = x * x + y * y
+    mask = (r2 < 1)[None]
+    normals = torch.stack([x, y, torch.sqrt((1 - r2).clamp_min(0))]) * mask
+    image = (render_sh(normals[None], natural_lightings(0.7)["uffizi_gallery"][None])[0] * mask).clamp(0, 1)
+    io.write_image(tmp_path / "obj.png", image, bits=16)
+    io.write_image(tmp_path / "obj_mask.png", mask.float(), srgb=False)
+    return mask
+
+
+class TestCLI:
+    def test_demo_writes_everything(self, tmp_path):
+        result = run_cli([*TINY, "demo.resolution=48", f"out={tmp_path / 'demo'}"], tmp_path)
+        assert result.returncode == 0, result.stderr
+        out = tmp_path / "demo"
+        for name in SPEC_FILES + ["summary.png", "metrics.json"]:
+            assert (out / name).is_file(), name
+        numbers = json.loads((out / "metrics.json").read_text())
+        # the full method must beat the silhouette-only coarse normal on the demo shape
+        assert numbers["median error (deg)"] < numbers["silhouette-only median (deg)"]
+        normals = np.load(out / "normals.npy")
+        assert normals.shape == (48, 48, 3) and normals.dtype == np.float32
+
+    def test_user_files_with_integration(self, tmp_path):
+        mask = write_sphere(tmp_path)
+        out = tmp_path / "result"
+        result = run_cli([*TINY, "image=obj.png", "mask=obj_mask.png", f"out={out}", "integrate=l2"], tmp_path)
+        assert result.returncode == 0, result.stderr
+        for name in SPEC_FILES + ["depth.npy", "mesh.ply", "novel_view.png", "summary.png"]:
+            assert (out / name).is_file(), name
+        normals = np.load(out / "normals.npy")
+        assert np.all(normals[~mask[0].numpy()] == 0)
+        assert np.allclose(np.linalg.norm(normals[mask[0].numpy()], axis=-1), 1, atol=1e-5)
+        sh = io.read_lighting(out / "lighting.json")
+        assert sh.shape == (3, 9)
+
+    def test_known_lighting(self, tmp_path):
+        write_sphere(tmp_path)
+        sh = natural_lightings(0.7)["uffizi_gallery"]
+        io.write_lighting(tmp_path / "light.json", sh)
+        result = run_cli([*TINY, "image=obj.png", "mask=obj_mask.png", "lighting=light.json", "out=known"], tmp_path)
+        assert result.returncode == 0, result.stderr
+        assert torch.allclose(io.read_lighting(tmp_path / "known" / "lighting.json"), sh)
+
+    def test_multirun_sweep(self, tmp_path):
+        write_sphere(tmp_path)
+        result = run_cli(["-m", *TINY, "image=obj.png", "mask=obj_mask.png", "features=rgb,all"], tmp_path)
+        assert result.returncode == 0, result.stderr
+        jobs = sorted((tmp_path / "multirun").glob("*/*/[0-9]"))
+        assert len(jobs) == 2
+        for job in jobs:
+            assert (job / "normals.npy").is_file()
+
+    def test_bad_input_is_one_clear_line(self, tmp_path):
+        result = run_cli([*TINY, "image=missing.png", "out=x"], tmp_path)
+        assert result.returncode == 2
+        assert "missing.png" in result.stderr + result.stdout
+        assert "Traceback" not in result.stderr
