@@ -36,7 +36,8 @@ class DemoConfig:
     """The built-in demo: which evaluation shape, lighting and view.
 
     Attributes:
-        shape: index into the held-out evaluation shapes of ``database``.
+        shape: index into the held-out evaluation shapes of ``database`` (6: a dog phalanx
+            bone of the default collection; any index works).
         lighting: one of :func:`sfs_torch.lighting.natural_lightings`.
         albedo: scales the lighting so that the image stays within [0, 1].
         resolution: image size in pixels.
@@ -44,7 +45,7 @@ class DemoConfig:
         noise_sigma: image noise, as in the paper's synthetic experiments.
     """
 
-    shape: int = 0
+    shape: int = 6
     lighting: str = "grace_cathedral"
     albedo: float = 0.7
     resolution: int = 256
@@ -152,7 +153,7 @@ def run(cfg: DictConfig) -> Dict[str, float]:
             **numbers,
         }
     summary_numbers = {k: v for k, v in numbers.items() if not k.startswith("time ")}
-    summary_numbers["total time (s)"] = sum(est.timings.values())
+    summary_numbers["time per call (s)"] = sum(t for stage, t in est.timings.items() if stage != "database")
     from .figures import summary_figure
 
     summary_figure(

@@ -53,7 +53,10 @@ def summary_figure(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = [("input", _display(image * mask), None), ("estimated normals", normals_to_rgb(normals, mask), None)]
+    background = ~mask[0].cpu().numpy()
+    shown = _display(image)
+    shown[background] = 1.0
+    panels = [("input", shown, None), ("estimated normals", normals_to_rgb(normals, mask), None)]
     if true_normals is not None:
         panels.append(("true normals", normals_to_rgb(true_normals, mask), None))
         cos = (normals * true_normals).sum(0).clamp(-1, 1)
@@ -70,7 +73,9 @@ def summary_figure(
 
     cols = min(4, len(panels))
     rows = (len(panels) + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.2 * rows + (0.9 if numbers else 0.3)), squeeze=False)
+    fig, axes = plt.subplots(
+        rows, cols, figsize=(3.4 * cols, 3.4 * rows + (0.9 if numbers else 0.3)), squeeze=False, layout="constrained"
+    )
     for ax in axes.flat:
         ax.axis("off")
     for ax, (name, data, kind) in zip(axes.flat, panels):
@@ -86,7 +91,6 @@ def summary_figure(
     fig.suptitle(title, fontsize=12)
     if numbers:
         text = "   ".join(f"{k}: {v:.3g}" for k, v in numbers.items())
-        fig.text(0.5, 0.01, text, ha="center", va="bottom", fontsize=9, wrap=True)
-    fig.tight_layout(rect=(0, 0.06 if numbers else 0, 1, 0.96))
+        fig.supxlabel(text, fontsize=9)
     fig.savefig(path, dpi=110)
     plt.close(fig)
