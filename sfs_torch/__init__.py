@@ -16,7 +16,14 @@ modules follow the paper's pipeline (Fig. 2):
   lighting, evaluation metrics, files
 - :mod:`sfs_torch.pipeline`: :func:`estimate`, the whole method
 """
-from .pipeline import Estimate, PipelineConfig, estimate
+import os
+
+# Idle OpenMP threads spin by default; on a small shared CPU that made the forest's many
+# short parallel loops 20-50x slower (docs/forest.md). Only effective when torch is
+# imported after this package, and only if the user has not chosen a policy.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from .pipeline import Estimate, PipelineConfig, estimate  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = ["estimate", "Estimate", "PipelineConfig", "__version__"]

@@ -15,17 +15,21 @@ from pathlib import Path
 from typing import Any, Dict, Optional
 
 import hydra
+import numpy as np
 import torch
 from hydra.core.config_store import ConfigStore
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from . import io
+from .figures import summary_figure
 from .geometry_db import evaluation_shapes
+from .integrability import depth_to_mesh
 from .lighting import natural_lightings, render_sh, render_sphere
 from .metrics import lmse, normal_metrics
+from .novel_view import render_novel_view
 from .pipeline import Estimate, PipelineConfig, estimate
-from .rendering import render_normals
+from .rendering import random_view_rotations, render_normals
 from .silhouette import coarse_normals
 
 log = logging.getLogger("sfs_torch")
@@ -84,8 +88,6 @@ def _demo_inputs(cfg: DictConfig, device: torch.device) -> Dict[str, Any]:
         raise ValueError(f"demo.lighting must be one of {sorted(lights)}, got {cfg.demo.lighting!r}")
     shape = shapes[cfg.demo.shape]
     generator = torch.Generator().manual_seed(cfg.demo.view_seed)
-    from .rendering import random_view_rotations
-
     view = render_normals(shape.mesh, random_view_rotations(1, generator)[0], cfg.demo.resolution)
     sh = lights[cfg.demo.lighting]
     normals = view.normals[None]
@@ -96,7 +98,7 @@ def _demo_inputs(cfg: DictConfig, device: torch.device) -> Dict[str, Any]:
     return {"image": image[0].to(device), "mask": mask[0].to(device), "normals": normals[0], "lighting": sh, "name": shape.name}
 
 
-def _write_outputs(out: Path, est: Estimate, integrate: Optional[str]) -> None:
+def _write_outputs(out: Path, est: Estimate) -> None:
     out.mkdir(parents=True, exist_ok=True)
     normals = est.normals.cpu()
     io.write_normals_npy(out / "normals.npy", normals)
@@ -107,15 +109,9 @@ def _write_outputs(out: Path, est: Estimate, integrate: Optional[str]) -> None:
     scale = kappa[est.mask.cpu()[0]].quantile(0.99).clamp_min(1e-6)
     io.write_image(out / "confidence.png", (kappa / scale).clamp(0, 1), srgb=False)
     if est.depth is not None:
-        import numpy as np
-
         np.save(out / "depth.npy", est.depth.cpu()[0].numpy().astype("float32"))
-        from .integrability import depth_to_mesh
-
         mesh = depth_to_mesh(est.depth.cpu()[0], est.mask.cpu()[0])
         mesh.export(out / "mesh.ply")
-        from .novel_view import render_novel_view
-
         io.write_image(out / "novel_view.png", render_novel_view(mesh, est.lighting.cpu()))
 
 
@@ -137,7 +133,7 @@ def run(cfg: DictConfig) -> Dict[str, float]:
         known = io.read_lighting(cfg.lighting) if cfg.lighting else None
         demo = None
     est = estimate(image, mask, lighting=known, config=pipeline_cfg)
-    _write_outputs(out, est, pipeline_cfg.integrate.method)
+    _write_outputs(out, est)
     for stage, seconds in est.timings.items():
         numbers[f"time {stage} (s)"] = seconds
     title = f"sfs-torch: {cfg.image or 'demo ' + demo['name']}"
@@ -154,8 +150,6 @@ def run(cfg: DictConfig) -> Dict[str, float]:
         }
     summary_numbers = {k: v for k, v in numbers.items() if not k.startswith("time ")}
     summary_numbers["time per call (s)"] = sum(t for stage, t in est.timings.items() if stage != "database")
-    from .figures import summary_figure
-
     summary_figure(
         out / "summary.png", image.cpu(), mask.cpu(), est.normals.cpu(), est.lighting.cpu(),
         true_normals=None if demo is None else demo["normals"], true_lighting=None if demo is None else demo["lighting"],

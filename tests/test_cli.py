@@ -43,7 +43,7 @@ def write_sphere(tmp_path, size=48, radius=18.0):
 
 class TestCLI:
     def test_demo_writes_everything(self, tmp_path):
-        result = run_cli([*TINY, "demo.resolution=48", f"out={tmp_path / 'demo'}"], tmp_path)
+        result = run_cli([*TINY, "demo.shape=0", "demo.resolution=48", f"out={tmp_path / 'demo'}"], tmp_path)
         assert result.returncode == 0, result.stderr
         out = tmp_path / "demo"
         for name in SPEC_FILES + ["summary.png", "metrics.json"]:
