@@ -71,6 +71,8 @@ class AppConfig(PipelineConfig):
 
 
 ConfigStore.instance().store(name="sfs_torch_schema", node=AppConfig)
+# hydra.run.dir is `out` when given, else a dated folder (oc.select keeps a null value).
+OmegaConf.register_new_resolver("sfs_torch_or", lambda value, default: default if value is None else value, replace=True)
 
 
 def _pipeline_config(cfg: DictConfig) -> DictConfig:

@@ -71,9 +71,12 @@ class TestCLI:
         write_sphere(tmp_path)
         sh = natural_lightings(0.7)["uffizi_gallery"]
         io.write_lighting(tmp_path / "light.json", sh)
-        result = run_cli([*TINY, "image=obj.png", "mask=obj_mask.png", "lighting=light.json", "out=known"], tmp_path)
+        # no out=: a dated folder under outputs/
+        result = run_cli([*TINY, "image=obj.png", "mask=obj_mask.png", "lighting=light.json"], tmp_path)
         assert result.returncode == 0, result.stderr
-        assert torch.allclose(io.read_lighting(tmp_path / "known" / "lighting.json"), sh)
+        written = list((tmp_path / "outputs").glob("*/*/lighting.json"))
+        assert len(written) == 1
+        assert torch.allclose(io.read_lighting(written[0]), sh)
 
     def test_multirun_sweep(self, tmp_path):
         write_sphere(tmp_path)
