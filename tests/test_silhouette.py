@@ -13,6 +13,7 @@ from sfs_torch.silhouette import (
     SilhouetteDistances,
     coarse_normals,
     euclidean_distance_transform,
+    _edt_squared_torch,
     medial_axis,
     silhouette_distances,
     silhouette_features,
@@ -74,6 +75,20 @@ class TestEuclideanDistanceTransform:
             assert np.isinf(got).all()
         else:
             np.testing.assert_allclose(got, ndimage.distance_transform_edt(mask), atol=1e-4)
+
+    @settings(max_examples=40, deadline=None)
+    @given(shapes())
+    def test_torch_transform_equals_scipy(self, mask):
+        # The torch transform serves every non-CPU device; check it on the CPU too.
+        if mask.all():
+            return
+        dist2, rows, cols = _edt_squared_torch(torch.from_numpy(mask)[None])
+        np.testing.assert_allclose(dist2[0].sqrt().numpy(), ndimage.distance_transform_edt(mask), atol=1e-4)
+        r = torch.arange(mask.shape[0])[:, None]
+        c = torch.arange(mask.shape[1])[None, :]
+        # the feature transform points at a background pixel at exactly that distance
+        assert not mask[rows[0].numpy(), cols[0].numpy()].any()
+        assert torch.equal(((rows[0] - r) ** 2 + (cols[0] - c) ** 2).float(), dist2[0])
 
     def test_batch_equals_single(self, device):
         rng = np.random.default_rng(0)
