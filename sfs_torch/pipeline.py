@@ -17,7 +17,7 @@ import hashlib
 import logging
 import time
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Dict, Iterator, Optional, Sequence, Union
 
@@ -60,12 +60,21 @@ class TrainingConfig:
     Attributes:
         noise_sigma: std of the Gaussian noise added to the shaded patches before
             clipping to [0, 1] (the paper: 0.001).
+        brightness_jitter: std of a per-patch log-brightness factor applied before the
+            noise, which makes the forest tolerant of an estimated lighting whose overall
+            brightness is off (0: off). Only used when the lighting is estimated: a
+            given lighting is trusted exactly.
+        colour_jitter: std of an additional per-patch, per-channel log-gain (an
+            estimated lighting whose colour balance is off); likewise only for an
+            estimated lighting.
         seed: seed of that noise.
         cache_forests: keep trained forests on disk, keyed by lighting and configuration.
         conv_samples_per_tree: samples drawn from each tree's leaf for ``integrate="conv"``.
     """
 
     noise_sigma: float = 0.001
+    brightness_jitter: float = 0.3
+    colour_jitter: float = 0.05
     seed: int = 0
     cache_forests: bool = True
     conv_samples_per_tree: int = 1
@@ -161,7 +170,14 @@ class TrainingSet:
 
 
 def training_set(
-    db: GeometryDatabase, sh: Tensor, features: FeatureConfig, texton_cfg: TextonConfig, noise_sigma: float, seed: int
+    db: GeometryDatabase,
+    sh: Tensor,
+    features: FeatureConfig,
+    texton_cfg: TextonConfig,
+    noise_sigma: float,
+    seed: int,
+    brightness_jitter: float = 0.0,
+    colour_jitter: float = 0.0,
 ) -> TrainingSet:
     """Shade the database patches with one lighting and compute their features (Sec. 5).
 
@@ -180,6 +196,11 @@ def training_set(
     masks = db.masks.to(sh.device)
     shaded = render_sh(normals, sh.expand(normals.shape[0], -1, -1))
     generator = torch.Generator(device=sh.device).manual_seed(seed)
+    if brightness_jitter > 0 or colour_jitter > 0:
+        n = len(shaded)
+        log_gain = brightness_jitter * torch.randn(n, 1, 1, 1, generator=generator, device=sh.device)
+        log_gain = log_gain + colour_jitter * torch.randn(n, 3, 1, 1, generator=generator, device=sh.device)
+        shaded = shaded * log_gain.exp().to(shaded.dtype)
     noisy = shaded + noise_sigma * torch.randn(shaded.shape, generator=generator, device=sh.device, dtype=shaded.dtype)
     patches = noisy.clamp(0, 1) * masks
     centre = db.normals.shape[-1] // 2
@@ -201,7 +222,7 @@ def _forest_key(sh: Tensor, cfg: PipelineConfig) -> str:
         "database": asdict(cfg.database),
         "features": asdict(cfg.features),
         "texton": asdict(cfg.texton),
-        "training": {"noise_sigma": cfg.training.noise_sigma, "seed": cfg.training.seed},
+        "training": {k: v for k, v in asdict(cfg.training).items() if k != "cache_forests"},
         "forest": asdict(cfg.forest),
     }
     return hashlib.sha256(repr(payload).encode()).hexdigest()[:24]
@@ -219,7 +240,10 @@ def _trained_forest(sh: Tensor, db: GeometryDatabase, cfg: PipelineConfig, timer
             log.warning("ignoring unreadable cached forest %s (%s)", path, err)
     if forest is None:
         with timer("shade database + features"):
-            data = training_set(db, sh, cfg.features, cfg.texton, cfg.training.noise_sigma, cfg.training.seed)
+            data = training_set(
+                db, sh, cfg.features, cfg.texton, cfg.training.noise_sigma, cfg.training.seed,
+                cfg.training.brightness_jitter, cfg.training.colour_jitter,
+            )
         with timer("train forest"):
             params = {k: v for k, v in asdict(cfg.forest).items() if k != "_target_"}
             forest = VMFForest(**params, device=sh.device).fit(data.features, data.normals)
@@ -320,6 +344,9 @@ def estimate(
     with timer("test features"):
         feats = pixel_features(image_b, mask_b, cfg.features, cfg.texton)
 
+    train_cfg = cfg
+    if lighting is not None:
+        train_cfg = replace(cfg, training=replace(cfg.training, brightness_jitter=0.0, colour_jitter=0.0))
     normals = torch.zeros_like(image_b)
     confidence = torch.zeros_like(mask_b, dtype=image_b.dtype)
     candidates = []
@@ -330,7 +357,7 @@ def estimate(
         if focal is not None:
             rot = centroid_rotation(mask_b[b : b + 1], focal, principal_point)[0]
             local_sh = rotate_sh(sh[b], rot.T.to(sh.dtype))
-        forest = _trained_forest(local_sh, db, cfg, timer)
+        forest = _trained_forest(local_sh, db, train_cfg, timer)
         m = mask_b[b, 0]
         rows = feats[b].permute(1, 2, 0)[m]
         with timer("predict"):

@@ -11,7 +11,7 @@ from sfs_torch.pipeline import PipelineConfig, resolve_config, training_set
 # the default configuration is measured in benchmarks/end_to_end.py.
 TINY = {
     "database": {"collection": "blobby", "n_shapes": 12, "n_views": 4, "resolution": 64, "samples_per_view": 150, "n_eval_shapes": 2},
-    "forest": {"n_trees": 4, "max_depth": 10},
+    "forest": {"n_trees": 8, "max_depth": 12},
 }
 
 
@@ -129,6 +129,32 @@ class TestTrainingSet:
         assert torch.allclose(data.features[:, :3], shaded.clamp(0, 1), atol=1e-6)
         assert torch.equal(data.features[:, 3:6], db.silhouette)
         assert data.features.shape[1] == 3 + 3 + 17
+
+
+    def test_brightness_jitter_scales_whole_patches(self):
+        from sfs_torch.geometry_db import DatabaseConfig, load_database
+        from sfs_torch.pipeline import FeatureConfig
+        from sfs_torch.texton import TextonConfig
+
+        db = load_database(DatabaseConfig(**TINY["database"]), progress=False)
+        sh = natural_lightings(0.3)["uffizi_gallery"]
+        plain = training_set(db, sh, FeatureConfig(texton=False), TextonConfig(), noise_sigma=0.0, seed=0)
+        jittered = training_set(
+            db, sh, FeatureConfig(texton=False), TextonConfig(), noise_sigma=0.0, seed=0, brightness_jitter=0.3
+        )
+        ratio = jittered.features[:, :3] / plain.features[:, :3]
+        unclipped = (jittered.features[:, :3] < 1).all(1) & (plain.features[:, :3] > 1e-3).all(1)
+        # one gain per patch, shared by the three channels, log-normal with std 0.3
+        assert torch.allclose(ratio[unclipped], ratio[unclipped][:, :1].expand(-1, 3), rtol=1e-4)
+        assert abs(float(ratio[unclipped][:, 0].log().std()) - 0.3) < 0.03
+
+
+class TestJitterOnlyForEstimatedLighting:
+    def test_given_lighting_ignores_jitter(self, scene):
+        _, mask, sh, image = scene
+        a = sfs_torch.estimate(image, mask, lighting=sh, config=TINY, progress=False)
+        b = sfs_torch.estimate(image, mask, lighting=sh, config=dict(TINY, training={"brightness_jitter": 0.0, "colour_jitter": 0.0}), progress=False)
+        assert torch.equal(a.normals, b.normals)
 
 
 class TestConfig:
