@@ -9,6 +9,7 @@ per-stage time of one unknown-lighting call (database already cached).
 
     python benchmarks/end_to_end.py            # 10 shapes x 3 lightings, 256 px
     python benchmarks/end_to_end.py --quick    # 3 shapes x 2 lightings, 128 px
+    python benchmarks/end_to_end.py --focal 300 --out benchmarks/results/end_to_end_persp.json
 """
 from __future__ import annotations
 
@@ -37,6 +38,7 @@ def main() -> None:
     parser.add_argument("--shapes", type=int, default=None)
     parser.add_argument("--resolution", type=int, default=None)
     parser.add_argument("--collection", default="default")
+    parser.add_argument("--focal", type=float, default=None, help="perspective camera (pixels); default orthographic")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "end_to_end.json")
     args = parser.parse_args()
     n_shapes = args.shapes or (3 if args.quick else 10)
@@ -53,24 +55,28 @@ def main() -> None:
     generator = torch.Generator().manual_seed(0)
     rows = []
     for shape in shapes:
-        view = render_normals(shape.mesh, random_view_rotations(1, generator)[0], resolution)
+        view = render_normals(shape.mesh, random_view_rotations(1, generator)[0], resolution, focal=args.focal)
         normals, mask = view.normals[None], view.mask[None]
         for name in light_names:
             sh = lights[name][None]
             image = ((render_sh(normals, sh) + 0.001 * torch.randn(normals.shape, generator=generator)).clamp(0, 1)) * mask
             start = time.perf_counter()
-            est = sfs_torch.estimate(image, mask, config=config, progress=False)
+            est = sfs_torch.estimate(image, mask, focal=args.focal, config=config, progress=False)
             seconds = time.perf_counter() - start
-            known = sfs_torch.estimate(image, mask, lighting=sh, config=config, progress=False)
+            known = sfs_torch.estimate(image, mask, focal=args.focal, lighting=sh, config=config, progress=False)
             rows.append({
                 "shape": shape.name, "lighting": name, "pixels": int(mask.sum()),
-                "silhouette_only": float(normal_metrics(coarse_normals(mask), normals, mask).median[0]),
+                "silhouette_only": float(normal_metrics(coarse_normals(mask, focal=args.focal), normals, mask).median[0]),
                 "unknown_light": float(normal_metrics(est.normals, normals, mask).median[0]),
                 "known_light": float(normal_metrics(known.normals, normals, mask).median[0]),
                 "lmse": float(lmse(est.lighting, sh)[0]),
                 "seconds": seconds,
                 "stages": {k: v for k, v in est.timings.items() if k != "database"},
             })
+            if args.focal is not None:
+                # Table 3: the same perspective image estimated as if it were orthographic
+                ortho = sfs_torch.estimate(image, mask, config=config, progress=False)
+                rows[-1]["unknown_light_as_orthographic"] = float(normal_metrics(ortho.normals, normals, mask).median[0])
             r = rows[-1]
             print(f"{r['shape']:<34} {name:<16} {r['silhouette_only']:6.1f} {r['unknown_light']:6.1f} "
                   f"{r['known_light']:6.1f} {r['lmse']:8.5f} {seconds:6.2f}s", flush=True)
@@ -80,16 +86,21 @@ def main() -> None:
 
     stages = {k: statistics.median(r["stages"].get(k, 0.0) for r in rows) for k in rows[0]["stages"]}
     summary = {
-        "images": len(rows), "resolution": resolution, "collection": args.collection,
+        "images": len(rows), "resolution": resolution, "collection": args.collection, "focal": args.focal,
         "median_of_medians_deg": {"silhouette_only": med("silhouette_only"), "unknown_light": med("unknown_light"),
                                   "known_light": med("known_light")},
         "median_lmse": med("lmse"), "median_seconds_per_call": med("seconds"), "median_stage_seconds": stages,
         "threads": torch.get_num_threads(),
     }
+    if args.focal is not None:
+        summary["median_of_medians_deg"]["unknown_light_as_orthographic"] = med("unknown_light_as_orthographic")
     print()
     print(f"{'method':<36}{'median angular error (deg)':>28}")
     for key, label in [("silhouette_only", "silhouette only (Eq. 10)"), ("unknown_light", "full method, unknown lighting"),
-                       ("known_light", "full method, known lighting")]:
+                       ("known_light", "full method, known lighting"),
+                       ("unknown_light_as_orthographic", "unknown lighting, camera ignored")]:
+        if key not in summary["median_of_medians_deg"]:
+            continue
         print(f"{label:<36}{summary['median_of_medians_deg'][key]:>28.2f}")
     print(f"{'lighting lMSE (median)':<36}{summary['median_lmse']:>28.5f}")
     print(f"{'seconds per call (median)':<36}{summary['median_seconds_per_call']:>28.2f}")
