@@ -540,7 +540,6 @@ def integrate_convex(
     m = mask[:, 0]
     labels = mask_components(mask)[:, 0]
     ex, ey = _edge_masks(m)
-    num = candidates.shape[1]
     gu, gv, factor = _gradients(candidates, focal, principal_point, min_nz)  # (B, S, H, W)
     gu_d, gv_d = gu.detach(), gv.detach()
     # start from (and regularise towards) the normalised mean of the candidate normals:

@@ -18,7 +18,6 @@ import logging
 import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
-from pathlib import Path
 from typing import Any, Dict, Iterator, Optional, Sequence, Union
 
 import numpy as np
