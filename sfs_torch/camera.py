@@ -22,10 +22,16 @@ class CameraConfig:
     Attributes:
         focal: focal length in pixels, or ``None`` for an orthographic camera.
         principal_point: ``(cx, cy)`` in pixels; ``None`` for the image centre.
+        normal_rotation: how the pipeline turns normals predicted in an orthographic
+            frame into the perspective camera frame: ``"centroid"``, the one rotation
+            of the object's centroid (the frame its training lighting is expressed in),
+            or ``"pixel"``, each pixel's own :func:`perspective_rotation` (the paper's
+            Sec. 8 rule). See docs/pipeline.md for the measurements behind the default.
     """
 
     focal: Optional[float] = None
     principal_point: Optional[Tuple[float, float]] = None
+    normal_rotation: str = "centroid"
 
 
 def pixel_grid(

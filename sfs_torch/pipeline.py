@@ -351,11 +351,11 @@ def estimate(
     candidates = []
     for b in range(batch):
         # Perspective: train in the object's own orthographic frame (the lighting seen
-        # from its centroid) and rotate every predicted normal to the camera afterwards.
+        # from its centroid), then rotate the predictions to the camera frame.
         local_sh = sh[b]
         if focal is not None:
-            rot = centroid_rotation(mask_b[b : b + 1], focal, principal_point)[0]
-            local_sh = rotate_sh(sh[b], rot.T.to(sh.dtype))
+            centroid = centroid_rotation(mask_b[b : b + 1], focal, principal_point)[0]
+            local_sh = rotate_sh(sh[b], centroid.T.to(sh.dtype))
         forest = _trained_forest(local_sh, db, train_cfg, timer)
         m = mask_b[b, 0]
         rows = feats[b].permute(1, 2, 0)[m]
@@ -370,9 +370,11 @@ def estimate(
             cand = torch.zeros(samples.shape[1], 3, *m.shape, dtype=normals.dtype, device=normals.device)
             cand.permute(2, 3, 0, 1)[m] = samples.to(cand.dtype)
             candidates.append(cand)
-    if focal is not None:
-        normals = rotate_normals_to_camera(normals, focal, principal_point) * mask_b
-        candidates = [rotate_normals_to_camera(c, focal, principal_point) for c in candidates]
+        if focal is not None:
+            normals[b : b + 1] = _to_camera(normals[b : b + 1], centroid, focal, principal_point, cfg.camera.normal_rotation)
+            if candidates:
+                candidates[b] = _to_camera(candidates[b], centroid, focal, principal_point, cfg.camera.normal_rotation)
+    normals = normals * mask_b
 
     depth = None
     if integrate is not None:
@@ -397,6 +399,15 @@ def estimate(
         normals=out(normals), confidence=out(confidence), lighting=out(sh), depth=out(depth), mask=out(mask_b),
         timings=dict(timer.seconds),
     )
+
+
+def _to_camera(normals: Tensor, centroid: Tensor, focal: float, principal_point, rule: str) -> Tensor:
+    """Rotate normals predicted in the centroid's orthographic frame to the camera frame."""
+    if rule == "pixel":
+        return rotate_normals_to_camera(normals, focal, principal_point)
+    if rule == "centroid":
+        return torch.einsum("ij,bjhw->bihw", centroid.to(normals.dtype), normals)
+    raise ValueError(f"camera.normal_rotation must be 'centroid' or 'pixel', got {rule!r}")
 
 
 def _solver_options(cfg: IntegrabilityConfig, method: str) -> Dict[str, Any]:

@@ -70,9 +70,33 @@ class TestEstimate:
         est = sfs_torch.estimate(image, mask, focal=60.0, lighting=sh, config=TINY, progress=False)
         norms = est.normals.norm(dim=0)[mask[0]]
         assert torch.allclose(norms, torch.ones_like(norms), atol=1e-5)
-        # the rim of a perspective sphere faces away from the optical axis more than orthographically
+        # centred object: the centroid rotation is the identity, the per-pixel one is not
         ortho = sfs_torch.estimate(image, mask, lighting=sh, config=TINY, progress=False)
-        assert not torch.allclose(est.normals, ortho.normals)
+        assert torch.allclose(est.normals, ortho.normals, atol=1e-6)
+        per_pixel = dict(TINY, camera={"normal_rotation": "pixel"})
+        tilted = sfs_torch.estimate(image, mask, focal=60.0, lighting=sh, config=per_pixel, progress=False)
+        assert not torch.allclose(tilted.normals, ortho.normals, atol=1e-3)
+
+    def test_perspective_sphere_known_lighting(self):
+        import trimesh
+
+        from sfs_torch.rendering import render_normals
+
+        view = render_normals(trimesh.creation.icosphere(subdivisions=5), torch.eye(3), 64, focal=50.0)
+        normals, mask = view.normals, view.mask
+        # off-centre crop: the perspective rotation is far from the identity there
+        normals, mask = normals[:, 8:, 8:], mask[:, 8:, 8:]
+        sh = natural_lightings(0.7)["grace_cathedral"]
+        image = (render_sh(normals[None], sh[None])[0] * mask).clamp(0, 1)
+        errors = {}
+        for rule in ("centroid", "pixel"):
+            config = dict(TINY, camera={"normal_rotation": rule})
+            est = sfs_torch.estimate(
+                image, mask, focal=50.0, principal_point=(24.0, 24.0), lighting=sh, config=config, progress=False
+            )
+            errors[rule] = float(normal_metrics(est.normals, normals, mask).median)
+        # the colour cue is learnt in the centroid's frame: rotating by it stays consistent
+        assert errors["centroid"] < 5.0 and errors["centroid"] < errors["pixel"]
 
     @pytest.mark.parametrize("method", ["l2", "l1"])
     def test_integration_gives_depth(self, scene, method):
