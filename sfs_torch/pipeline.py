@@ -33,7 +33,7 @@ from .geometry_db import DatabaseConfig, GeometryDatabase, cache_dir, load_datab
 from .integrability import IntegrabilityConfig, integrate_convex, integrate_normals
 from .lighting import render_sh, rotate_sh
 from .reflectance_map import ReflectanceMapConfig, estimate_lighting
-from .silhouette import SilhouetteConfig, silhouette_features
+from .silhouette import silhouette_features
 from .texton import TextonConfig, texton_features
 
 __all__ = ["FeatureConfig", "TrainingConfig", "PipelineConfig", "Estimate", "estimate", "training_set", "pixel_features"]
@@ -84,7 +84,6 @@ class PipelineConfig:
     """Every option of :func:`estimate`; ``conf/`` holds the same defaults as YAML."""
 
     database: DatabaseConfig = field(default_factory=DatabaseConfig)
-    silhouette: SilhouetteConfig = field(default_factory=SilhouetteConfig)
     texton: TextonConfig = field(default_factory=TextonConfig)
     reflectance_map: ReflectanceMapConfig = field(default_factory=ReflectanceMapConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)
