@@ -4,6 +4,7 @@ import sys
 
 import numpy as np
 import torch
+from scenes import sphere
 
 from sfs_torch import io
 from sfs_torch.lighting import natural_lightings, render_sh
@@ -28,12 +29,7 @@ def run_cli(args, cwd):
 
 
 def write_sphere(tmp_path, size=48, radius=18.0):
-    c = torch.arange(size, dtype=torch.float32) + 0.5 - size / 2
-    yy, xx = torch.meshgrid(c, c, indexing="ij")
-    x, y = xx / radius, -yy / radius
-    r2 = x * x + y * y
-    mask = (r2 < 1)[None]
-    normals = torch.stack([x, y, torch.sqrt((1 - r2).clamp_min(0))]) * mask
+    normals, mask = sphere(size, radius)
     image = (render_sh(normals[None], natural_lightings(0.7)["uffizi_gallery"][None])[0] * mask).clamp(0, 1)
     io.write_image(tmp_path / "obj.png", image, bits=16)
     io.write_image(tmp_path / "obj_mask.png", mask.float(), srgb=False)

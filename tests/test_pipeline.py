@@ -1,5 +1,6 @@
 import pytest
 import torch
+from scenes import sphere
 
 import sfs_torch
 from sfs_torch.lighting import natural_lightings, render_sh
@@ -12,16 +13,6 @@ TINY = {
     "database": {"collection": "blobby", "n_shapes": 12, "n_views": 4, "resolution": 64, "samples_per_view": 150, "n_eval_shapes": 2},
     "forest": {"n_trees": 8, "max_depth": 12},
 }
-
-
-def sphere(size=64, radius=26.0):
-    c = torch.arange(size, dtype=torch.float32) + 0.5 - size / 2
-    yy, xx = torch.meshgrid(c, c, indexing="ij")
-    x, y = xx / radius, -yy / radius
-    r2 = x * x + y * y
-    mask = (r2 < 1)[None]
-    normals = torch.stack([x, y, torch.sqrt((1 - r2).clamp_min(0))]) * mask
-    return normals, mask
 
 
 @pytest.fixture(scope="module")

@@ -1,21 +1,21 @@
 import pytest
 import torch
+from scenes import sphere
 
 from sfs_torch.camera import centroid_rotation
 from sfs_torch.lighting import natural_lightings, render_sh, rotate_sh
 from sfs_torch.metrics import lmse
-from sfs_torch.reflectance_map import ReflectanceMapConfig, estimate_lighting, hemisphere_directions, sphere_mapping
+from sfs_torch.reflectance_map import (
+    ReflectanceMapConfig,
+    estimate_lighting,
+    hemisphere_directions,
+    sphere_mapping,
+)
 
 
 def sphere_image(size=128, radius=50.0, centre=(0.0, 0.0)):
-    c = torch.arange(size, dtype=torch.float32) + 0.5 - size / 2
-    yy, xx = torch.meshgrid(c, c, indexing="ij")
-    x = (xx - centre[0]) / radius
-    y = -(yy + centre[1]) / radius
-    r2 = x * x + y * y
-    mask = (r2 < 1)[None, None]
-    normals = torch.stack([x, y, torch.sqrt((1 - r2).clamp_min(0))])[None] * mask
-    return normals, mask
+    normals, mask = sphere(size, radius, centre)
+    return normals[None], mask[None]
 
 
 class TestHemisphereDirections:
