@@ -46,15 +46,15 @@ def check_finite(x: Tensor, name: str) -> None:
         raise ValueError(f"{name} contains {bad} NaN or infinite values")
 
 
-def check_mask(mask: Tensor, name: str = "mask", allow_full: bool = False) -> Tensor:
+def check_mask(mask: Tensor, name: str = "mask", allow_full: bool = False, allow_empty: bool = False) -> Tensor:
     """Validate a ``(B, 1, H, W)`` mask and return it as ``bool``.
 
     Accepts ``bool`` or numeric tensors holding only 0 and 1.
 
     Raises:
-        ValueError: wrong shape, values other than 0/1, an empty mask in any batch
-            element, or (unless ``allow_full``) a mask that covers the whole image, which
-            leaves no silhouette to read.
+        ValueError: wrong shape, values other than 0/1, (unless ``allow_empty``) an empty
+            mask in any batch element, or (unless ``allow_full``) a mask that covers the
+            whole image, which leaves no silhouette to read.
     """
     if not isinstance(mask, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor of shape (B, 1, H, W), got {type(mask).__name__}")
@@ -65,7 +65,7 @@ def check_mask(mask: Tensor, name: str = "mask", allow_full: bool = False) -> Te
             raise ValueError(f"{name} must be boolean or hold only 0 and 1 (dtype {mask.dtype})")
         mask = mask != 0
     counts = mask.flatten(1).sum(1)
-    if bool((counts == 0).any()):
+    if not allow_empty and bool((counts == 0).any()):
         which = torch.nonzero(counts == 0).flatten().tolist()
         raise ValueError(f"{name} is empty (no object pixel) in batch element(s) {which}")
     if not allow_full and bool((counts == mask[0].numel()).any()):

@@ -92,15 +92,8 @@ class SilhouetteConfig:
 
 def _mask_argument(mask: Tensor, name: str, allow_empty: bool) -> Tuple[Tensor, bool]:
     mask, single = to_batch(mask, name, 1)
-    if allow_empty:
-        if mask.ndim != 4 or mask.shape[1] != 1:
-            raise ValueError(f"{name} must have shape (B, 1, H, W), got {tuple(mask.shape)}")
-        if mask.dtype != torch.bool:
-            if mask.is_complex() or not bool(((mask == 0) | (mask == 1)).all()):
-                raise ValueError(f"{name} must be boolean or hold only 0 and 1 (dtype {mask.dtype})")
-            mask = mask != 0
-        return mask, single
-    return check_mask(mask, name), single
+    # a distance transform is defined for empty and full masks alike
+    return check_mask(mask, name, allow_full=allow_empty, allow_empty=allow_empty), single
 
 
 def _lower_envelope(f: Tensor) -> Tuple[Tensor, Tensor]:
