@@ -7,7 +7,10 @@
    (:mod:`sfs_torch.geometry_db`) shaded with it, noised and clipped, with colour,
    texton and silhouette features computed exactly as on the test image;
 4. a von Mises-Fisher regression forest trained on it (:mod:`sfs_torch.forest`),
-   cached by lighting, predicts every object pixel independently;
+   cached by lighting, predicts every object pixel independently; with an estimated
+   lighting, the lighting is then refitted to the image from these normals and a
+   forest trained for it predicts again (``reflectance_map.refine_rounds``, default 1;
+   an addition to the paper that measurably helps, see docs/pipeline.md);
 5. perspective: each normal rotated towards the camera centre (:mod:`sfs_torch.camera`);
 6. optional integrability refinement (:mod:`sfs_torch.integrability`).
 """
@@ -32,7 +35,7 @@ from .forest import VMF, ForestConfig, VMFForest, sample_vmf
 from .geometry_db import DatabaseConfig, GeometryDatabase, cache_dir, load_database
 from .integrability import IntegrabilityConfig, integrate_convex, integrate_normals
 from .lighting import render_sh, rotate_sh
-from .reflectance_map import ReflectanceMapConfig, estimate_lighting
+from .reflectance_map import ReflectanceMapConfig, estimate_lighting, refit_lighting
 from .silhouette import silhouette_features
 from .texton import TextonConfig, texton_features
 
@@ -345,34 +348,41 @@ def estimate(
     train_cfg = cfg
     if lighting is not None:
         train_cfg = replace(cfg, training=replace(cfg.training, brightness_jitter=0.0, colour_jitter=0.0))
+    rounds = cfg.reflectance_map.refine_rounds if lighting is None else 0
+    if rounds < 0:
+        raise ValueError(f"reflectance_map.refine_rounds must be >= 0, got {rounds}")
+    sh = sh.clone()
     normals = torch.zeros_like(image_b)
     confidence = torch.zeros_like(mask_b, dtype=image_b.dtype)
     candidates = []
     for b in range(batch):
-        # Perspective: train in the object's own orthographic frame (the lighting seen
-        # from its centroid), then rotate the predictions to the camera frame.
-        local_sh = sh[b]
-        if focal is not None:
-            centroid = centroid_rotation(mask_b[b : b + 1], focal, principal_point)[0]
-            local_sh = rotate_sh(sh[b], centroid.T.to(sh.dtype))
-        forest = _trained_forest(local_sh, db, train_cfg, timer)
         m = mask_b[b, 0]
         rows = feats[b].permute(1, 2, 0)[m]
-        with timer("predict"):
-            pred: VMF = forest.predict(rows)
-        normals[b].permute(1, 2, 0)[m] = pred.mean.to(normals.dtype)
-        confidence[b, 0][m] = pred.kappa.to(confidence.dtype)
+        centroid = centroid_rotation(mask_b[b : b + 1], focal, principal_point)[0] if focal is not None else None
+        for round_ in range(rounds + 1):
+            if round_ > 0:
+                with timer("lighting refinement"):
+                    sh[b] = refit_lighting(image_b[b : b + 1], mask_b[b : b + 1], normals[b : b + 1])[0]
+            # Perspective: train in the object's own orthographic frame (the lighting
+            # seen from its centroid), then rotate the predictions to the camera frame.
+            local_sh = sh[b] if centroid is None else rotate_sh(sh[b], centroid.T.to(sh.dtype))
+            forest = _trained_forest(local_sh, db, train_cfg, timer)
+            with timer("predict"):
+                pred: VMF = forest.predict(rows)
+            normals[b] = 0
+            normals[b].permute(1, 2, 0)[m] = pred.mean.to(normals.dtype)
+            confidence[b, 0][m] = pred.kappa.to(confidence.dtype)
+            if centroid is not None:
+                normals[b : b + 1] = _to_camera(normals[b : b + 1], centroid, focal, principal_point, cfg.camera.normal_rotation)
         if integrate == "conv":
             leaves = forest.predict_leaves(rows)
             generator = torch.Generator(device=rows.device).manual_seed(cfg.training.seed)
             samples = sample_vmf(leaves, cfg.training.conv_samples_per_tree, generator).flatten(1, 2)  # (N, S, 3)
             cand = torch.zeros(samples.shape[1], 3, *m.shape, dtype=normals.dtype, device=normals.device)
             cand.permute(2, 3, 0, 1)[m] = samples.to(cand.dtype)
+            if centroid is not None:
+                cand = _to_camera(cand, centroid, focal, principal_point, cfg.camera.normal_rotation)
             candidates.append(cand)
-        if focal is not None:
-            normals[b : b + 1] = _to_camera(normals[b : b + 1], centroid, focal, principal_point, cfg.camera.normal_rotation)
-            if candidates:
-                candidates[b] = _to_camera(candidates[b], centroid, focal, principal_point, cfg.camera.normal_rotation)
     normals = normals * mask_b
 
     depth = None

@@ -7,6 +7,10 @@ hemisphere directions is the mean colour of the ``k`` pixels mapped nearest to i
 (Eq. 9), a low-pass that suppresses badly mapped pixels; 9 SH coefficients per channel
 are fitted to these colours in closed form, and finally the brightness and contrast
 of the estimate are matched to the image.
+
+:func:`refit_lighting` goes the other way: given normals for the object (the forest's
+prediction, in :func:`sfs_torch.estimate`), it fits the lighting that shades them into
+the image, which the pipeline uses to refine the silhouette estimate.
 """
 from __future__ import annotations
 
@@ -19,10 +23,10 @@ from torch import Tensor
 
 from ._checks import check_finite, check_mask, check_same_size, check_shape
 from .camera import centroid_rotation
-from .lighting import fit_sh_vectors, rotate_sh, sh_basis_vectors
+from .lighting import fit_sh, fit_sh_vectors, rotate_sh, sh_basis_vectors
 from .silhouette import silhouette_distances
 
-__all__ = ["ReflectanceMapConfig", "sphere_mapping", "estimate_lighting", "hemisphere_directions"]
+__all__ = ["ReflectanceMapConfig", "sphere_mapping", "estimate_lighting", "refit_lighting", "hemisphere_directions"]
 
 PROFILES = ("sphere", "linear")
 
@@ -42,6 +46,10 @@ class ReflectanceMapConfig:
             bounds the cost of the k-NN search on large images.
         match_statistics: match the mean and standard deviation of the estimate's
             shading to the image per channel (the paper's final step).
+        refine_rounds: used by :func:`sfs_torch.estimate` when the lighting is
+            estimated: this many times, the lighting is refitted to the image from the
+            forest's predicted normals (:func:`refit_lighting`) and a new forest is
+            trained for it. 0 is the paper's method; each round costs one more forest.
     """
 
     profile: str = "sphere"
@@ -50,6 +58,7 @@ class ReflectanceMapConfig:
     min_k: int = 4
     max_pixels: int = 20000
     match_statistics: bool = True
+    refine_rounds: int = 1
 
 
 def hemisphere_directions(n: int, *, device=None, dtype=torch.float32) -> Tensor:
@@ -144,6 +153,28 @@ def estimate_lighting(
     if focal is not None:
         sh = rotate_sh(sh, centroid_rotation(mask, focal, principal_point).to(sh.dtype))
     return sh
+
+
+def refit_lighting(image: Tensor, mask: Tensor, normals: Tensor) -> Tensor:
+    """SH lighting that best shades ``normals`` into ``image`` (least squares, Lambertian).
+
+    Pixels clipped at 0 or 1 in any channel are left out, since their shading is not
+    what the image shows; if every object pixel is clipped, all are used.
+
+    Args:
+        image: linear RGB, :math:`(B, 3, H, W)`.
+        mask: object pixels, :math:`(B, 1, H, W)` bool.
+        normals: camera-frame unit normals, :math:`(B, 3, H, W)`, e.g. predicted ones.
+
+    Returns:
+        :math:`(B, 3, 9)` SH lighting in the camera frame.
+    """
+    check_shape(image, "image", "B 3 H W")
+    mask = check_mask(mask)
+    check_same_size(image, "image", mask, "mask")
+    unclipped = mask & ((image > 0) & (image < 1)).all(1, keepdim=True)
+    usable = unclipped.flatten(1).any(1)[:, None, None, None]
+    return fit_sh(normals, image, torch.where(usable, unclipped, mask))
 
 
 def _match_statistics(sh: Tensor, pixel_dirs: Tensor, pixel_colours: Tensor) -> Tensor:

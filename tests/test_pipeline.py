@@ -6,6 +6,7 @@ import sfs_torch
 from sfs_torch.lighting import natural_lightings, render_sh
 from sfs_torch.metrics import lmse, normal_metrics
 from sfs_torch.pipeline import PipelineConfig, resolve_config, training_set
+from sfs_torch.reflectance_map import refit_lighting
 
 # A small database and forest keep these end-to-end tests to seconds; the accuracy of
 # the default configuration is measured in benchmarks/end_to_end.py.
@@ -169,6 +170,26 @@ class TestJitterOnlyForEstimatedLighting:
         a = sfs_torch.estimate(image, mask, lighting=sh, config=TINY, progress=False)
         b = sfs_torch.estimate(image, mask, lighting=sh, config=dict(TINY, training={"brightness_jitter": 0.0, "colour_jitter": 0.0}), progress=False)
         assert torch.equal(a.normals, b.normals)
+
+
+class TestLightingRefinement:
+    def test_refined_lighting_is_fitted_to_the_unrefined_normals(self, scene):
+        _, mask, _, image = scene
+        plain = sfs_torch.estimate(image, mask, config=dict(TINY, reflectance_map={"refine_rounds": 0}), progress=False)
+        refined = sfs_torch.estimate(image, mask, config=TINY, progress=False)
+        expected = refit_lighting(image[None], mask[None], plain.normals[None])[0]
+        assert torch.allclose(refined.lighting, expected, atol=1e-5)
+        assert not torch.allclose(refined.lighting, plain.lighting, atol=1e-3)
+
+    def test_given_lighting_is_not_refined(self, scene):
+        _, mask, sh, image = scene
+        est = sfs_torch.estimate(image, mask, lighting=sh, config=dict(TINY, reflectance_map={"refine_rounds": 2}), progress=False)
+        assert torch.equal(est.lighting, sh)
+
+    def test_negative_rounds_are_rejected(self, scene):
+        _, mask, _, image = scene
+        with pytest.raises(ValueError, match="refine_rounds"):
+            sfs_torch.estimate(image, mask, config=dict(TINY, reflectance_map={"refine_rounds": -1}), progress=False)
 
 
 class TestConfig:

@@ -9,6 +9,7 @@ from sfs_torch.reflectance_map import (
     ReflectanceMapConfig,
     estimate_lighting,
     hemisphere_directions,
+    refit_lighting,
     sphere_mapping,
 )
 
@@ -85,3 +86,26 @@ class TestEstimateLighting:
         bad[0, 0, 16, 16] = float("inf")
         with pytest.raises(ValueError, match="image contains"):
             estimate_lighting(bad, mask)
+
+
+class TestRefitLighting:
+    def test_true_normals_recover_lighting_despite_clipping(self):
+        normals, mask = sphere_image(64, 25.0)
+        sh = natural_lightings(4.0)["grace_cathedral"][None]  # bright enough to clip at 1
+        shading = render_sh(normals, sh)
+        image = (shading * mask).clamp(0, 1)
+        clipped = mask & ((shading <= 0) | (shading >= 1)).any(1, keepdim=True)
+        assert 0.05 < float(clipped.sum() / mask.sum()) < 0.95
+        assert torch.allclose(refit_lighting(image, mask, normals), sh, atol=1e-4)
+
+    def test_all_pixels_clipped_falls_back_to_the_mask(self):
+        normals, mask = sphere_image(32, 12.0)
+        image = torch.ones(1, 3, 32, 32) * mask
+        sh = refit_lighting(image, mask, normals)
+        # a constant white image is fitted by a constant (ambient-only) lighting
+        assert torch.allclose(render_sh(normals, sh)[mask.expand(-1, 3, -1, -1)], torch.ones(1), atol=1e-4)
+
+    def test_exception(self):
+        normals, mask = sphere_image(32, 12.0)
+        with pytest.raises(ValueError, match="mask"):
+            refit_lighting(torch.zeros(1, 3, 32, 32), torch.zeros_like(mask), normals)
