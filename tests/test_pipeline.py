@@ -183,7 +183,8 @@ class TestLightingRefinement:
 
     def test_given_lighting_is_not_refined(self, scene):
         _, mask, sh, image = scene
-        est = sfs_torch.estimate(image, mask, lighting=sh, config=dict(TINY, reflectance_map={"refine_rounds": 2}), progress=False)
+        config = dict(TINY, reflectance_map={"refine_rounds": 2})
+        est = sfs_torch.estimate(image, mask, lighting=sh, config=config, progress=False)
         assert torch.equal(est.lighting, sh)
 
     def test_negative_rounds_are_rejected(self, scene):
