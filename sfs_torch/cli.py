@@ -155,7 +155,8 @@ def run(cfg: DictConfig) -> Dict[str, float]:
     summary_figure(
         out / "summary.png", image.cpu(), mask.cpu(), est.normals.cpu(), est.lighting.cpu(),
         true_normals=None if demo is None else demo["normals"], true_lighting=None if demo is None else demo["lighting"],
-        depth=None if est.depth is None else est.depth.cpu(), numbers=summary_numbers, title=title,
+        confidence=est.confidence.cpu(), depth=None if est.depth is None else est.depth.cpu(),
+        numbers=summary_numbers, title=title,
     )
     (out / "metrics.json").write_text(json.dumps(numbers, indent=2))
     for key, value in numbers.items():

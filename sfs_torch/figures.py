@@ -28,6 +28,13 @@ def _display(image: Tensor) -> np.ndarray:
     return srgb.permute(1, 2, 0).numpy()
 
 
+def _outside_as_nan(values: Tensor, mask: Tensor) -> np.ndarray:
+    """``(H, W)`` values -> array with NaN (drawn blank) outside the ``(1, H, W)`` mask."""
+    out = values.detach().float().cpu().numpy().copy()
+    out[~mask[0].cpu().numpy()] = np.nan
+    return out
+
+
 def summary_figure(
     path: Path,
     image: Tensor,
@@ -37,16 +44,18 @@ def summary_figure(
     *,
     true_normals: Optional[Tensor] = None,
     true_lighting: Optional[Tensor] = None,
+    confidence: Optional[Tensor] = None,
     depth: Optional[Tensor] = None,
     numbers: Optional[Dict[str, float]] = None,
     title: str = "sfs-torch",
 ) -> None:
     """Write the one-page summary: input, estimated (and true) normals, error map,
-    estimated (and true) reflectance maps, depth, and the key numbers.
+    estimated (and true) reflectance maps, confidence, depth, and the key numbers.
 
     Args:
         image: ``(3, H, W)`` linear RGB; mask ``(1, H, W)`` bool; normals ``(3, H, W)``;
-            lighting ``(3, 9)``; optional ground truth of the same shapes; depth ``(1, H, W)``.
+            lighting ``(3, 9)``; optional ground truth of the same shapes; confidence
+            (the forest's kappa) and depth ``(1, H, W)``.
     """
     import matplotlib
 
@@ -60,16 +69,17 @@ def summary_figure(
     if true_normals is not None:
         panels.append(("true normals", normals_to_rgb(true_normals, mask), None))
         cos = (normals * true_normals).sum(0).clamp(-1, 1)
-        err = torch.rad2deg(torch.acos(cos)).cpu().numpy()
-        err[~mask[0].cpu().numpy()] = np.nan
-        panels.append(("angular error (deg)", err, "error"))
+        err = _outside_as_nan(torch.rad2deg(torch.acos(cos)), mask)
+        panels.append(("angular error (deg)", err, {"cmap": "inferno", "vmin": 0, "vmax": 45}))
     panels.append(("estimated reflectance map", _display(render_sphere(lighting.float().cpu(), 128)), None))
     if true_lighting is not None:
         panels.append(("true reflectance map", _display(render_sphere(true_lighting.float().cpu(), 128)), None))
+    if confidence is not None:
+        k = _outside_as_nan(confidence[0], mask)
+        # kappa has a long tail where the trees agree exactly; the 99th percentile keeps the rest visible
+        panels.append(("confidence (kappa)", k, {"cmap": "cividis", "vmin": 0, "vmax": float(np.nanquantile(k, 0.99))}))
     if depth is not None:
-        d = depth[0].detach().float().cpu().numpy().copy()
-        d[~mask[0].cpu().numpy()] = np.nan
-        panels.append(("depth", d, "depth"))
+        panels.append(("depth", _outside_as_nan(depth[0], mask), {"cmap": "viridis"}))
 
     cols = min(4, len(panels))
     rows = (len(panels) + cols - 1) // cols
@@ -78,15 +88,11 @@ def summary_figure(
     )
     for ax in axes.flat:
         ax.axis("off")
-    for ax, (name, data, kind) in zip(axes.flat, panels):
-        if kind == "error":
-            im = ax.imshow(data, cmap="inferno", vmin=0, vmax=45)
-            fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04)
-        elif kind == "depth":
-            im = ax.imshow(data, cmap="viridis")
-            fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04)
-        else:
+    for ax, (name, data, colour_scale) in zip(axes.flat, panels):
+        if colour_scale is None:
             ax.imshow(data)
+        else:
+            fig.colorbar(ax.imshow(data, **colour_scale), ax=ax, fraction=0.046, pad=0.04)
         ax.set_title(name, fontsize=10)
     fig.suptitle(title, fontsize=12)
     if numbers:
