@@ -11,7 +11,8 @@
    lighting, the lighting is then refitted to the image from these normals and a
    forest trained for it predicts again (``reflectance_map.refine_rounds``, default 1;
    an addition to the paper that measurably helps, see docs/pipeline.md);
-5. perspective: each normal rotated towards the camera centre (:mod:`sfs_torch.camera`);
+5. perspective: the normals, predicted in the object's orthographic frame, rotated
+   into the camera frame (:mod:`sfs_torch.camera`);
 6. optional integrability refinement (:mod:`sfs_torch.integrability`).
 """
 from __future__ import annotations
