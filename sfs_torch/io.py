@@ -43,7 +43,9 @@ __all__ = [
 PathLike = Union[str, os.PathLike]
 
 _IMAGE_FORMATS = "an 8- or 16-bit PNG, a JPEG, or a float .npy of shape (H, W, 3) or (H, W)"
-_MASK_FORMATS = "a PNG/JPEG (non-zero = object, RGBA: alpha > 0) or a .npy of shape (H, W) or (1, H, W)"
+_MASK_FORMATS = (
+    "a PNG (non-zero = object, RGBA: alpha > 0), a JPEG (brighter than mid-grey = object) or a .npy of shape (H, W) or (1, H, W)"
+)
 # 16-bit normal-map code of a component n in [-1, 1]: round(32767 n + 32768), so that
 # n = 0 (the background) is the exact code 32768 and decodes to exactly 0.
 _NORMAL_ZERO = 32768.0
@@ -174,11 +176,14 @@ def _load_mask(path: PathLike, name: str) -> Tensor:
             raise _bad(name, p, _MASK_FORMATS, "NaN or infinite values")
         return torch.from_numpy(np.ascontiguousarray(array != 0))[None]
     array = _decode_raster(p, name, _MASK_FORMATS)
+    # JPEG's lossy compression rings around the object's edge and leaves faint non-zero
+    # pixels in the background, so there the object is what is brighter than mid-grey.
+    threshold = np.iinfo(array.dtype).max // 2 if p.suffix.lower() in (".jpg", ".jpeg") else 0
     if array.ndim == 3 and array.shape[2] == 4:
-        return torch.from_numpy(np.ascontiguousarray(array[..., 3] > 0))[None]
+        return torch.from_numpy(np.ascontiguousarray(array[..., 3] > threshold))[None]
     if array.ndim == 3:
-        return torch.from_numpy(np.ascontiguousarray((array != 0).any(2)))[None]
-    return torch.from_numpy(array != 0)[None]
+        return torch.from_numpy(np.ascontiguousarray((array > threshold).any(2)))[None]
+    return torch.from_numpy(array > threshold)[None]
 
 
 def read_image(path: PathLike, *, srgb: bool = True) -> Tensor:
@@ -205,8 +210,10 @@ def read_mask(path: PathLike) -> Tensor:
     """Read an object mask.
 
     Args:
-        path: a PNG/JPEG where non-zero pixels (in any channel) are the object, an RGBA
-            PNG whose alpha > 0 is the object, or a ``.npy`` array ``(H, W)`` /
+        path: a PNG where non-zero pixels (in any channel) are the object, an RGBA
+            PNG whose alpha > 0 is the object, a JPEG where pixels brighter than
+            mid-grey (> 127 in any channel) are the object (its compression leaves faint
+            non-zero noise in the background), or a ``.npy`` array ``(H, W)`` /
             ``(1, H, W)`` (bool or numeric; non-zero = object).
 
     Returns:

@@ -151,6 +151,15 @@ class TestReadMask:
         _write_raw(tmp_path / "rgb.png", rgb)
         assert io.read_mask(tmp_path / "rgb.png").nonzero().tolist() == [[0, 2, 3]]
 
+    def test_jpeg_compression_noise_is_not_object(self, tmp_path):
+        yy, xx = np.mgrid[:64, :64]
+        truth = (yy - 30) ** 2 + (xx - 34) ** 2 < 20**2
+        assert cv2.imwrite(str(tmp_path / "m.jpg"), truth.astype(np.uint8) * 255, [cv2.IMWRITE_JPEG_QUALITY, 40])
+        noisy = _read_raw(tmp_path / "m.jpg")
+        assert ((noisy != 0) & ~truth).sum() > 100  # the background really holds ringing
+        mask = io.read_mask(tmp_path / "m.jpg")[0].numpy()
+        assert (mask != truth).sum() <= 0.02 * truth.sum()
+
     def test_rgba_alpha(self, tmp_path):
         raw = np.full((4, 5, 4), 255, dtype=np.uint8)
         raw[..., 3] = 0
