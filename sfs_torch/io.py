@@ -104,7 +104,10 @@ def _decode_raster(path: Path, name: str, expected: str) -> np.ndarray:
     """Decode a PNG/JPEG into ``(H, W)`` grey or ``(H, W, 3|4)`` RGB(A), uint8 or uint16."""
     # imdecode on the bytes (rather than imread) also handles non-ASCII paths.
     data = np.fromfile(path, dtype=np.uint8)
-    array = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    # IMREAD_UNCHANGED keeps 16-bit PNG samples but ignores a JPEG's EXIF orientation;
+    # JPEGs are 8-bit, so they are decoded upright as viewers show them (and masks drawn on them).
+    flags = cv2.IMREAD_ANYCOLOR if path.suffix.lower() in (".jpg", ".jpeg") else cv2.IMREAD_UNCHANGED
+    array = cv2.imdecode(data, flags) if data.size else None
     if array is None:
         raise _bad(name, path, expected, "a file OpenCV cannot decode as an image")
     if array.dtype not in (np.uint8, np.uint16):

@@ -104,6 +104,21 @@ class TestReadWriteImage:
         image = io.read_image(tmp_path / "rgba.png")
         assert image.shape == (3, 3, 4) and (image[1] == 1).all() and (image[[0, 2]] == 0).all()
 
+    def test_jpeg_exif_orientation_is_applied(self, tmp_path):
+        from PIL import Image
+
+        raw = np.zeros((16, 32, 3), dtype=np.uint8)
+        raw[:8, :8] = 255  # a white block in the stored top-left corner
+        exif = Image.new("RGB", (1, 1)).getexif()
+        exif[0x0112] = 6  # "rotate 90 degrees clockwise to display"
+        Image.fromarray(raw).save(tmp_path / "a.jpg", exif=exif, quality=95)
+        Image.fromarray(raw[..., 0]).save(tmp_path / "m.jpg", exif=exif, quality=95)
+        upright = np.rot90(raw, k=-1)[..., 0] > 127
+        image = io.read_image(tmp_path / "a.jpg", srgb=False)
+        assert image.shape == (3, 32, 16)
+        np.testing.assert_array_equal(image[0].numpy() > 0.5, upright)
+        np.testing.assert_array_equal(io.read_mask(tmp_path / "m.jpg")[0].numpy(), upright)
+
     def test_jpeg(self, tmp_path):
         raw = np.full((16, 16, 3), (200, 100, 50), dtype=np.uint8)
         _write_raw(tmp_path / "a.jpg", raw)
