@@ -22,6 +22,7 @@ import logging
 import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
 from typing import Any, Dict, Iterator, Optional, Sequence, Union
 
 import numpy as np
@@ -72,6 +73,9 @@ class TrainingConfig:
             estimated lighting.
         seed: seed of that noise.
         cache_forests: keep trained forests on disk, keyed by lighting and configuration.
+        max_cached_forests: the most forests kept on disk; the least recently used
+            beyond it are deleted (an estimated lighting differs for every image, so
+            without a bound the cache would grow by a few MB per call).
         conv_samples_per_tree: samples drawn from each tree's leaf for ``integrate="conv"``.
     """
 
@@ -80,6 +84,7 @@ class TrainingConfig:
     colour_jitter: float = 0.05
     seed: int = 0
     cache_forests: bool = True
+    max_cached_forests: int = 64
     conv_samples_per_tree: int = 1
 
 
@@ -224,7 +229,7 @@ def _forest_key(sh: Tensor, cfg: PipelineConfig) -> str:
         "database": asdict(cfg.database),
         "features": asdict(cfg.features),
         "texton": asdict(cfg.texton),
-        "training": {k: v for k, v in asdict(cfg.training).items() if k != "cache_forests"},
+        "training": {k: v for k, v in asdict(cfg.training).items() if k not in ("cache_forests", "max_cached_forests")},
         "forest": asdict(cfg.forest),
     }
     return hashlib.sha256(repr(payload).encode()).hexdigest()[:24]
@@ -238,6 +243,7 @@ def _trained_forest(sh: Tensor, db: GeometryDatabase, cfg: PipelineConfig, timer
         try:
             forest = VMFForest.load(path).to(sh.device)
             log.info("reusing the forest trained for this lighting: %s", path)
+            path.touch()  # the cache evicts the least recently used forests
         except Exception as err:  # a corrupt cache entry is retrained, never trusted
             log.warning("ignoring unreadable cached forest %s (%s)", path, err)
     if forest is None:
@@ -252,7 +258,21 @@ def _trained_forest(sh: Tensor, db: GeometryDatabase, cfg: PipelineConfig, timer
         if cfg.training.cache_forests:
             path.parent.mkdir(parents=True, exist_ok=True)
             forest.save(path)
+            _evict_forests(path.parent, cfg.training.max_cached_forests)
     return forest
+
+
+def _evict_forests(folder: Path, keep: int) -> None:
+    """Delete all but the ``keep`` most recently used forests in ``folder``."""
+
+    def last_used(path: Path) -> float:
+        try:
+            return path.stat().st_mtime
+        except FileNotFoundError:  # another process evicted it meanwhile
+            return float("-inf")
+
+    for path in sorted(folder.glob("*.safetensors"), key=last_used, reverse=True)[keep:]:
+        path.unlink(missing_ok=True)
 
 
 def _as_image_tensor(image: Any) -> Tensor:
@@ -352,6 +372,8 @@ def estimate(
     rounds = cfg.reflectance_map.refine_rounds if lighting is None else 0
     if rounds < 0:
         raise ValueError(f"reflectance_map.refine_rounds must be >= 0, got {rounds}")
+    if cfg.training.max_cached_forests < 1:
+        raise ValueError(f"training.max_cached_forests must be >= 1, got {cfg.training.max_cached_forests}")
     sh = sh.clone()
     normals = torch.zeros_like(image_b)
     confidence = torch.zeros_like(mask_b, dtype=image_b.dtype)

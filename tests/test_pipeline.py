@@ -1,3 +1,6 @@
+import os
+import time
+
 import pytest
 import torch
 from scenes import sphere
@@ -191,6 +194,30 @@ class TestLightingRefinement:
         _, mask, _, image = scene
         with pytest.raises(ValueError, match="refine_rounds"):
             sfs_torch.estimate(image, mask, config=dict(TINY, reflectance_map={"refine_rounds": -1}), progress=False)
+
+
+class TestForestCache:
+    def test_keeps_the_most_recently_used(self, scene, tmp_path, monkeypatch):
+        monkeypatch.setenv("SFS_TORCH_CACHE", str(tmp_path))
+        _, mask, sh, image = scene
+        config = dict(TINY, training={"max_cached_forests": 2})
+        forests = tmp_path / "forests"
+        first = sfs_torch.estimate(image, mask, lighting=sh, config=config, progress=False)
+        (first_file,) = forests.glob("*.safetensors")
+        sfs_torch.estimate(image, mask, lighting=sh * 0.9, config=config, progress=False)
+        # backdate both, as if they were written long ago (some file systems keep 1 s mtimes)
+        for age, path in enumerate(forests.glob("*.safetensors")):
+            os.utime(path, (time.time() - 100 - age, time.time() - 100 - age))
+        again = sfs_torch.estimate(image, mask, lighting=sh, config=config, progress=False)  # reuses, marks it used
+        assert torch.equal(again.normals, first.normals)
+        sfs_torch.estimate(image, mask, lighting=sh * 0.8, config=config, progress=False)
+        kept = set(forests.glob("*.safetensors"))
+        assert len(kept) == 2 and first_file in kept
+
+    def test_bound_must_be_positive(self, scene):
+        _, mask, sh, image = scene
+        with pytest.raises(ValueError, match="max_cached_forests"):
+            sfs_torch.estimate(image, mask, lighting=sh, config=dict(TINY, training={"max_cached_forests": 0}), progress=False)
 
 
 class TestConfig:
