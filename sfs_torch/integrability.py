@@ -188,8 +188,11 @@ class _Multigrid:
         while max(self.levels[-1].wx.shape[-2:]) > coarsest:
             self.levels.append(self.levels[-1].coarsen())
         a = self.levels[-1].dense()
-        # singular (one constant per connected component): the pseudo-inverse ignores that
-        self.coarse_inv = torch.linalg.pinv(a, hermitian=True, rtol=1e-4)
+        # Singular (one constant per connected component): the pseudo-inverse ignores that.
+        # In float64 on the CPU: float32 eigh (LAPACK ssyevd) returned NaN eigenvectors
+        # for a real coarse level with many empty rows (tests/data/coarse_level_eigh_nan.npz).
+        pinv = torch.linalg.pinv(a.detach().cpu().double(), hermitian=True, rtol=1e-4)
+        self.coarse_inv = pinv.to(a.device, a.dtype)
         self.smooth, self.omega, self.boost = smooth, omega, boost
 
     def __call__(self, r: Tensor) -> Tensor:
@@ -238,6 +241,8 @@ def _pcg(level: _Level, precond: _Multigrid, b: Tensor, x0: Optional[Tensor], ma
         rel = r.flatten(1).norm(dim=1) / bnorm
         if bool((rel <= tol).all()):
             return x
+        if not bool(torch.isfinite(rel).all()):
+            raise FloatingPointError("integrability solve diverged to NaN/inf; please report the input that caused it")
         logger.warning("integrability CG stopped after %d iterations at relative residual %.2e", max_iter, float(rel.max()))
     return x
 

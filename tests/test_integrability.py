@@ -1,4 +1,6 @@
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -7,6 +9,8 @@ from sfs_torch.integrability import (
     IntegrabilityConfig,
     Integrator,
     Surface,
+    _Level,
+    _Multigrid,
     depth_to_mesh,
     depth_to_normals,
     integrate_convex,
@@ -196,6 +200,18 @@ class TestIntegrateL2:
         torch.testing.assert_close(module(n, mask).depth, integrate_normals(n, mask, method="l1", l1_iter=3).depth)
         with pytest.raises(ValueError, match="method"):
             Integrator(method="nope")
+
+
+class TestMultigrid:
+    def test_coarse_pseudo_inverse_of_a_degenerate_level_is_finite(self):
+        # the coarsest level of a real benchmark image (thin shape, 52 of 64 rows empty),
+        # on which float32 eigh returned NaN and the whole solve went NaN
+        data = np.load(Path(__file__).parent / "data" / "coarse_level_eigh_nan.npz")
+        level = _Level(torch.from_numpy(data["wx"]), torch.from_numpy(data["wy"]))
+        a = level.dense()
+        inv = _Multigrid(level).coarse_inv
+        assert inv.dtype == torch.float32 and bool(torch.isfinite(inv).all())
+        torch.testing.assert_close(a @ inv @ a, a, atol=1e-2, rtol=1e-3)
 
 
 class TestIntegrateL1:
