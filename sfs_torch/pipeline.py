@@ -109,7 +109,9 @@ class Estimate:
     Attributes:
         normals: :math:`(B, 3, H, W)` camera-frame unit normals, 0 outside the mask.
         confidence: :math:`(B, 1, H, W)` forest concentration (vMF kappa), 0 outside.
-        lighting: :math:`(B, 3, 9)` estimated (or given) SH lighting, camera frame.
+        lighting: :math:`(B, 3, 9)` SH lighting, camera frame: the given one, or the
+            estimate after ``reflectance_map.refine_rounds`` refits (the one the
+            final forest was trained for).
         depth: :math:`(B, 1, H, W)` from integrability refinement, else ``None``.
         mask: :math:`(B, 1, H, W)` the object mask used.
         timings: seconds spent per stage, summed over the batch.
