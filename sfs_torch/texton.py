@@ -30,7 +30,7 @@ import torch.nn.functional as F
 from kornia.color import linear_rgb_to_rgb, rgb_to_lab
 from torch import Tensor
 
-from ._checks import check_finite, check_same_size, check_shape, from_batch, to_batch
+from ._checks import check_finite, check_mask, check_same_size, check_shape, from_batch, to_batch
 
 __all__ = [
     "N_TEXTON_FILTERS",
@@ -168,14 +168,9 @@ def texton_features(
         )
     weights = texton_filter_bank(kernel_size, device=batch.device, dtype=batch.dtype)
     if mask is not None:
-        mask_b, _ = to_batch(mask, "mask", 1)
-        if mask_b.ndim != 4 or mask_b.shape[1] != 1:
-            raise ValueError(f"mask must have shape (B, 1, H, W), got {tuple(mask.shape)}")
+        # any coverage is valid here: a training patch may lie wholly inside the object
+        mask_b = check_mask(to_batch(mask, "mask", 1)[0], allow_full=True, allow_empty=True)
         check_same_size(batch, "image", mask_b, "mask")
-        if mask_b.dtype != torch.bool:
-            if mask_b.is_complex() or not bool(((mask_b == 0) | (mask_b == 1)).all()):
-                raise ValueError(f"mask must be boolean or hold only 0 and 1 (dtype {mask_b.dtype})")
-            mask_b = mask_b != 0
         batch = torch.where(mask_b, batch, torch.zeros((), dtype=batch.dtype, device=batch.device))
     lab = rgb_to_lab(linear_rgb_to_rgb(batch))
     out = F.conv2d(lab, weights, padding=kernel_size // 2 if padding == "same" else 0)
