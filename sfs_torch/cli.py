@@ -22,7 +22,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from . import io
-from .figures import summary_figure
+from .figures import confidence_display_max, summary_figure
 from .geometry_db import evaluation_shapes
 from .integrability import depth_to_mesh
 from .lighting import natural_lightings, render_sh, render_sphere
@@ -107,9 +107,9 @@ def _write_outputs(out: Path, est: Estimate) -> None:
     io.write_normals_png(out / "normals.png", normals)
     io.write_lighting(out / "lighting.json", est.lighting.cpu())
     io.write_image(out / "reflectance_map.png", render_sphere(est.lighting.cpu(), 256).clamp(0, 1))
-    kappa = est.confidence.cpu()[0]
-    scale = kappa[est.mask.cpu()[0]].quantile(0.99).clamp_min(1e-6)
-    io.write_image(out / "confidence.png", (kappa / scale).clamp(0, 1), srgb=False)
+    kappa = est.confidence.cpu()
+    scale = confidence_display_max(kappa, est.mask.cpu())
+    io.write_image(out / "confidence.png", (kappa[0] / scale).clamp(0, 1), srgb=False)
     if est.depth is not None:
         np.save(out / "depth.npy", est.depth.cpu()[0].numpy().astype("float32"))
         mesh = depth_to_mesh(est.depth.cpu()[0], est.mask.cpu()[0])

@@ -10,7 +10,7 @@ from torch import Tensor
 
 from .lighting import render_sphere
 
-__all__ = ["normals_to_rgb", "summary_figure"]
+__all__ = ["confidence_display_max", "normals_to_rgb", "summary_figure"]
 
 
 def normals_to_rgb(normals: Tensor, mask: Optional[Tensor] = None) -> np.ndarray:
@@ -26,6 +26,15 @@ def _display(image: Tensor) -> np.ndarray:
     x = image.detach().float().cpu().clamp(0, 1)
     srgb = torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.pow(1 / 2.4) - 0.055)
     return srgb.permute(1, 2, 0).numpy()
+
+
+def confidence_display_max(confidence: Tensor, mask: Tensor) -> float:
+    """Top of the colour scale for the forest's kappa: its 99th percentile on the object.
+
+    kappa has a long tail where the trees agree exactly; clipping it there keeps the
+    rest visible. ``confidence`` and ``mask``: ``(1, H, W)``.
+    """
+    return float(confidence[mask].float().quantile(0.99).clamp_min(1e-6))
 
 
 def _outside_as_nan(values: Tensor, mask: Tensor) -> np.ndarray:
@@ -75,9 +84,8 @@ def summary_figure(
     if true_lighting is not None:
         panels.append(("true reflectance map", _display(render_sphere(true_lighting.float().cpu(), 128)), None))
     if confidence is not None:
-        k = _outside_as_nan(confidence[0], mask)
-        # kappa has a long tail where the trees agree exactly; the 99th percentile keeps the rest visible
-        panels.append(("confidence (kappa)", k, {"cmap": "cividis", "vmin": 0, "vmax": float(np.nanquantile(k, 0.99))}))
+        scale = {"cmap": "cividis", "vmin": 0, "vmax": confidence_display_max(confidence.cpu(), mask.cpu())}
+        panels.append(("confidence (kappa)", _outside_as_nan(confidence[0], mask), scale))
     if depth is not None:
         panels.append(("depth", _outside_as_nan(depth[0], mask), {"cmap": "viridis"}))
 
