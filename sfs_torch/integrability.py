@@ -646,6 +646,15 @@ def depth_to_normals(
         if bool((depth[:, 0][m] <= 0).any()):
             raise ValueError("depth must be positive on the mask under perspective projection")
         s = torch.where(m, torch.log(torch.where(m, depth[:, 0], 1.0)), 0.0)
+    return from_batch(field_normals(s, m, focal, principal_point), single)
+
+
+def field_normals(s: Tensor, m: Tensor, focal: Optional[float], principal_point: Optional[Sequence[float]]) -> Tensor:
+    """Unit normals of the integrated field ``s`` (height, or log-depth with ``focal``).
+
+    Unchecked, for inner loops (:mod:`sfs_torch.refine`); :func:`depth_to_normals` is the
+    checked public form. ``s`` and ``m`` are :math:`(B, H, W)`; returns :math:`(B, 3, H, W)`.
+    """
     gu = _derivative(s, m, -1)
     gv = -_derivative(s, m, -2)  # rows grow downwards, v upwards
     if focal is None:
@@ -655,7 +664,7 @@ def depth_to_normals(
         u, v = pixel_grid(h, w, principal_point, device=s.device, dtype=s.dtype)
         n = torch.stack([focal * gu, focal * gv, 1.0 + u * gu + v * gv], 1)
     n = n / n.norm(dim=1, keepdim=True).clamp_min(torch.finfo(n.dtype).tiny)
-    return from_batch(torch.where(m[:, None], n, 0.0), single)
+    return torch.where(m[:, None], n, 0.0)
 
 
 def depth_to_mesh(

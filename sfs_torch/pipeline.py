@@ -13,7 +13,10 @@
    an addition to the paper that measurably helps, see docs/pipeline.md);
 5. perspective: the normals, predicted in the object's orthographic frame, rotated
    into the camera frame (:mod:`sfs_torch.camera`);
-6. optional integrability refinement (:mod:`sfs_torch.integrability`).
+6. photometric refinement (:mod:`sfs_torch.refine`, not in the paper): an integrable
+   surface fitted to the image, by default when the lighting is given
+   (``refine.when``);
+7. optional integrability refinement (:mod:`sfs_torch.integrability`).
 """
 from __future__ import annotations
 
@@ -38,6 +41,7 @@ from .geometry_db import DatabaseConfig, GeometryDatabase, cache_dir, load_datab
 from .integrability import IntegrabilityConfig, integrate_convex, integrate_normals
 from .lighting import render_sh, rotate_sh
 from .reflectance_map import ReflectanceMapConfig, estimate_lighting, refit_lighting
+from .refine import RefineConfig, check_refine_config, refine_shape_and_lighting
 from .silhouette import silhouette_features
 from .texton import TextonConfig, texton_features
 
@@ -100,6 +104,7 @@ class PipelineConfig:
     forest: ForestConfig = field(default_factory=ForestConfig)
     integrate: IntegrabilityConfig = field(default_factory=IntegrabilityConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
+    refine: RefineConfig = field(default_factory=RefineConfig)
 
 
 @dataclass(frozen=True)
@@ -111,8 +116,10 @@ class Estimate:
         confidence: :math:`(B, 1, H, W)` forest concentration (vMF kappa), 0 outside.
         lighting: :math:`(B, 3, 9)` SH lighting, camera frame: the given one, or the
             estimate after ``reflectance_map.refine_rounds`` refits (the one the
-            final forest was trained for).
-        depth: :math:`(B, 1, H, W)` from integrability refinement, else ``None``.
+            final forest was trained for), photometrically refined when
+            ``refine.when="always"``.
+        depth: :math:`(B, 1, H, W)` from the photometric or integrability refinement,
+            else ``None``.
         mask: :math:`(B, 1, H, W)` the object mask used.
         timings: seconds spent per stage, summed over the batch.
     """
@@ -335,6 +342,7 @@ def estimate(
         ValueError: bad shapes, dtypes, values, empty or full masks, unknown options.
     """
     cfg = resolve_config(config)
+    check_refine_config(cfg.refine)
     focal = cfg.camera.focal if focal is None else focal
     principal_point = cfg.camera.principal_point if principal_point is None else principal_point
     integrate = cfg.integrate.method if integrate is None else integrate
@@ -411,6 +419,13 @@ def estimate(
     normals = normals * mask_b
 
     depth = None
+    if cfg.refine.when == "always" or (cfg.refine.when == "known" and lighting is not None):
+        with timer("photometric refinement"):
+            refined = refine_shape_and_lighting(
+                image_b, mask_b, normals, sh, confidence=confidence, focal=focal, principal_point=principal_point,
+                config=replace(cfg.refine, optimise_lighting=lighting is None),
+            )
+        depth, normals, sh = refined.depth, refined.normals, refined.lighting
     if integrate is not None:
         with timer(f"integrate ({integrate})"):
             options = _solver_options(cfg.integrate, integrate)

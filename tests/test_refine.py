@@ -1,0 +1,185 @@
+import math
+
+import pytest
+import torch
+from scenes import sphere
+
+import sfs_torch
+from sfs_torch.lighting import natural_lightings, render_sh, rotate_sh
+from sfs_torch.metrics import lmse, normal_metrics
+from sfs_torch.refine import (
+    PhotometricRefiner,
+    RefineConfig,
+    refine_shape_and_lighting,
+    refinement_loss,
+    rim_pixels,
+)
+from sfs_torch.rendering import render_normals
+from sfs_torch.shapes import blobby_mesh
+from sfs_torch.silhouette import coarse_normals
+
+
+def _error(normals, truth, mask):
+    return float(normal_metrics(normals, truth, mask).median[0])
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Sphere under a natural lighting, and a start that is off in shape and lighting."""
+    normals, mask = sphere(48, 19.0)
+    normals, mask = normals[None], mask[None]
+    sh = natural_lightings(0.8)["campus_sunset"][None]
+    image = render_sh(normals, sh).clamp(0, 1) * mask
+    c = torch.linspace(-1, 1, 48)
+    yy, xx = torch.meshgrid(c, c, indexing="ij")
+    smooth = torch.stack([0.25 * torch.sin(3 * yy), 0.25 * torch.cos(2 * xx), torch.zeros_like(xx)])[None]
+    start = torch.nn.functional.normalize(normals + smooth, dim=1) * mask
+    a = math.radians(10)
+    rot = torch.tensor([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1.0]])
+    start_sh = rotate_sh(1.15 * sh, rot[None])
+    return normals, mask, sh, image, start, start_sh
+
+
+class TestRimPixels:
+    def test_disk_rim_is_a_one_pixel_ring(self):
+        _, mask = sphere(32, 10.0)
+        rim = rim_pixels(mask[None])[0, 0]
+        inner = mask[0] & ~rim
+        assert bool((rim <= mask[0]).all()) and int(rim.sum()) > 0
+        # every inner pixel's 4 neighbours are object pixels
+        padded = torch.nn.functional.pad(mask[0].float(), (1, 1, 1, 1))
+        neighbours = padded[:-2, 1:-1] + padded[2:, 1:-1] + padded[1:-1, :-2] + padded[1:-1, 2:]
+        assert bool((neighbours[inner] == 4).all()) and bool((neighbours[rim] < 4).all())
+
+
+class TestRefinementLoss:
+    def test_gradcheck(self):
+        torch.manual_seed(0)
+        normals, mask = sphere(10, 4.0)
+        normals, mask = normals[None].double(), mask[None]
+        sh = natural_lightings(0.8)["grace_cathedral"][None].double()
+        image = (render_sh(normals, sh).clamp(0, 1) * mask).double()
+        field = (0.3 * torch.randn(1, 10, 10, dtype=torch.float64)).requires_grad_(True)
+        light = (sh + 0.01 * torch.randn_like(sh)).requires_grad_(True)
+        weights = mask.double()
+        rim = coarse_normals(mask).double() * rim_pixels(mask)
+
+        def total(f, l):
+            return refinement_loss(f, l, image, mask, normals, weights, rim).total
+
+        assert torch.autograd.gradcheck(total, (field, light), eps=1e-6, atol=1e-6)
+
+    @pytest.mark.parametrize("focal", [None, 60.0])
+    def test_truth_explains_the_image(self, focal):
+        view = render_normals(blobby_mesh(3), torch.eye(3, dtype=torch.float64), 48, focal=focal)
+        normals, mask = view.normals[None], view.mask[None]
+        sh = natural_lightings(0.8)["grace_cathedral"][None]
+        image = render_sh(normals, sh).clamp(0, 1) * mask
+        truth = refine_shape_and_lighting(image, mask, normals, sh, focal=focal,
+                                          config=RefineConfig(iterations=0, optimise_lighting=False))
+        assert _error(truth.normals, normals, mask) < 2.0  # the start surface integrates the true normals
+        wrong = refine_shape_and_lighting(image, mask, normals, 1.3 * sh, focal=focal,
+                                          config=RefineConfig(iterations=0, optimise_lighting=False))
+        assert float(truth.loss_before[0]) < 0.5 * float(wrong.loss_before[0])
+
+
+class TestRefineShapeAndLighting:
+    def test_known_lighting_recovers_the_shape(self, scene):
+        normals, mask, sh, image, start, _ = scene
+        out = refine_shape_and_lighting(image, mask, start, sh, config=RefineConfig(optimise_lighting=False))
+        assert _error(start, normals, mask) > 10.0
+        assert _error(out.normals, normals, mask) < 1.5
+        assert torch.equal(out.lighting, sh)
+        assert float(out.loss_after[0]) < float(out.loss_before[0])
+
+    def test_joint_refinement_lowers_normal_and_lighting_errors(self, scene):
+        normals, mask, sh, image, start, start_sh = scene
+        out = refine_shape_and_lighting(image, mask, start, start_sh, config=RefineConfig(iterations=200))
+        assert _error(out.normals, normals, mask) < 0.8 * _error(start, normals, mask)
+        assert float(lmse(out.lighting, sh)[0]) < 0.8 * float(lmse(start_sh, sh)[0])
+
+    def test_perspective_known_lighting(self):
+        view = render_normals(blobby_mesh(5), torch.eye(3, dtype=torch.float64), 48, focal=50.0)
+        normals, mask = view.normals[None], view.mask[None]
+        sh = natural_lightings(0.8)["campus_sunset"][None]
+        image = render_sh(normals, sh).clamp(0, 1) * mask
+        start = coarse_normals(mask, focal=50.0)
+        out = refine_shape_and_lighting(image, mask, start, sh, focal=50.0,
+                                        config=RefineConfig(optimise_lighting=False, iterations=100))
+        assert _error(out.normals, normals, mask) < 0.5 * _error(start, normals, mask)
+        assert bool((out.depth[mask] > 0).all()) and float(out.depth[~mask].abs().max()) == 0.0
+
+    def test_outputs_unit_inside_zero_outside(self, scene):
+        _, mask, sh, image, start, start_sh = scene
+        out = refine_shape_and_lighting(image, mask, start, start_sh, config=RefineConfig(iterations=5))
+        m = mask[0, 0]
+        assert torch.allclose(out.normals[0].norm(dim=0)[m], torch.ones(int(m.sum())), atol=1e-5)
+        assert float(out.normals[0][:, ~m].abs().max()) == 0.0
+        assert out.depth.shape == (1, 1, 48, 48) and float(out.depth[~mask].abs().max()) == 0.0
+
+    def test_batch_equals_single(self, scene):
+        _, mask, sh, image, start, start_sh = scene
+        cfg = RefineConfig(iterations=10)
+        two = refine_shape_and_lighting(torch.cat([image, image.flip(-1)]), torch.cat([mask, mask.flip(-1)]),
+                                        torch.cat([start, start.flip(-1)]), torch.cat([start_sh, start_sh]), config=cfg)
+        one = refine_shape_and_lighting(image, mask, start, start_sh, config=cfg)
+        assert torch.allclose(two.normals[:1], one.normals, atol=1e-6)
+        assert torch.allclose(two.lighting[:1], one.lighting, atol=1e-6)
+
+    def test_module_equals_function(self, scene):
+        _, mask, sh, image, start, start_sh = scene
+        cfg = RefineConfig(iterations=5)
+        module = PhotometricRefiner(cfg)
+        a = module(image, mask, start, start_sh)
+        b = refine_shape_and_lighting(image, mask, start, start_sh, config=cfg)
+        assert torch.equal(a.normals, b.normals) and torch.equal(a.lighting, b.lighting)
+        assert {name for name, _ in module.named_buffers()} == {"prior_mean", "prior_precision"}
+
+    @pytest.mark.parametrize("bad, match", [
+        ({"when": "sometimes"}, "refine.when"), ({"iterations": -1}, "refine.iterations"),
+        ({"levels": 0}, "refine.levels"), ({"delta": 0.0}, "refine.delta"),
+        ({"normal_weight": -1.0}, "refine.normal_weight"),
+    ])
+    def test_bad_config(self, scene, bad, match):
+        _, mask, sh, image, start, _ = scene
+        with pytest.raises(ValueError, match=match):
+            refine_shape_and_lighting(image, mask, start, sh, config=RefineConfig(**bad))
+
+    def test_bad_inputs(self, scene):
+        _, mask, sh, image, start, _ = scene
+        with pytest.raises(ValueError, match="lighting"):
+            refine_shape_and_lighting(image, mask, start, sh[0])
+        with pytest.raises(ValueError, match="confidence must be non-negative"):
+            refine_shape_and_lighting(image, mask, start, sh, confidence=-mask.float())
+        with pytest.raises(ValueError, match="normals"):
+            refine_shape_and_lighting(image, mask, start[..., :10], sh)
+
+
+class TestPipeline:
+    TINY = {
+        "database": {"collection": "blobby", "n_shapes": 12, "n_views": 4, "resolution": 64, "samples_per_view": 150,
+                     "n_eval_shapes": 2},
+        "forest": {"n_trees": 8, "max_depth": 12},
+    }
+
+    def test_known_lighting_is_refined_by_default(self):
+        normals, mask = sphere()
+        sh = natural_lightings(0.7)["grace_cathedral"]
+        image = (render_sh(normals[None], sh[None])[0] * mask).clamp(0, 1)
+        never = sfs_torch.estimate(image, mask, lighting=sh, config={**self.TINY, "refine": {"when": "never"}},
+                                   progress=False)
+        default = sfs_torch.estimate(image, mask, lighting=sh, config=self.TINY, progress=False)
+        assert never.depth is None and default.depth is not None
+        assert "photometric refinement" in default.timings
+        assert _error(default.normals[None], normals[None], mask[None]) < _error(never.normals[None], normals[None], mask[None])
+        assert torch.equal(default.lighting, sh)
+        # an estimated lighting is left to the forest by default
+        unknown = sfs_torch.estimate(image, mask, config=self.TINY, progress=False)
+        assert unknown.depth is None and "photometric refinement" not in unknown.timings
+
+    def test_bad_refine_option_fails_before_any_work(self, monkeypatch):
+        normals, mask = sphere()
+        image = (render_sh(normals[None], natural_lightings(0.7)["grace_cathedral"][None])[0] * mask).clamp(0, 1)
+        monkeypatch.setattr("sfs_torch.pipeline.load_database", lambda *a, **k: pytest.fail("database loaded"))
+        with pytest.raises(ValueError, match="refine.when"):
+            sfs_torch.estimate(image, mask, config={"refine": {"when": "maybe"}}, progress=False)
