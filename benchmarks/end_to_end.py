@@ -4,10 +4,13 @@ Every shape comes from the EVALUATION side of the database's shape split (never
 trained on), rendered from a random view under R&H's natural light probes with noise
 sigma 0.001 (the paper's setting). For each image it reports the median angular error
 of: the silhouette-only coarse normal (Eq. 10), the full method in unknown lighting,
-and the full method with the true lighting given; plus the lighting lMSE and the
-per-stage time of one unknown-lighting call (database already cached).
+and the full method with the true lighting given, each without and with the
+photometric refinement (:mod:`sfs_torch.refine`, applied to the same forest output, so
+the two columns differ by that stage alone); plus the lighting lMSE before and after
+the refinement and the per-stage time of one call of each kind (database cached).
 
     python benchmarks/end_to_end.py            # 10 shapes x 3 lightings, 256 px
+    python benchmarks/end_to_end.py --shapes 6 --lights 5   # 6 shapes x 5 lightings
     python benchmarks/end_to_end.py --quick    # 3 shapes x 2 lightings, 128 px
     python benchmarks/end_to_end.py --focal 300 --out benchmarks/results/end_to_end_persp.json
     python benchmarks/end_to_end.py --integrate  # also Table 1b: the integrability variants
@@ -35,6 +38,7 @@ from sfs_torch.geometry_db import DatabaseConfig, evaluation_shapes, load_databa
 from sfs_torch.integrability import integrate_normals  # noqa: E402
 from sfs_torch.lighting import natural_lightings, render_sh  # noqa: E402
 from sfs_torch.metrics import lmse, normal_metrics  # noqa: E402
+from sfs_torch.refine import RefineConfig, refine_shape_and_lighting  # noqa: E402
 from sfs_torch.rendering import random_view_rotations, render_normals  # noqa: E402
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
 
@@ -47,12 +51,17 @@ def main() -> None:
     parser.add_argument("--collection", default="default")
     parser.add_argument("--focal", type=float, default=None, help="perspective camera (pixels); default orthographic")
     parser.add_argument("--integrate", action="store_true", help="also score L2, L1 and convex integrability refinement")
+    parser.add_argument("--lights", type=int, default=None, help="how many R&H lightings (3 by default, at most 7)")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "end_to_end.json")
     args = parser.parse_args()
     n_shapes = args.shapes or (3 if args.quick else 10)
     resolution = args.resolution or (128 if args.quick else 256)
-    light_names = ["grace_cathedral", "campus_sunset"] if args.quick else ["grace_cathedral", "campus_sunset", "uffizi_gallery"]
-    config = {"database": {"collection": args.collection}, "training": {"cache_forests": False}}
+    order = ["grace_cathedral", "campus_sunset", "uffizi_gallery", "eucalyptus_grove", "st_peters_basilica",
+             "galileos_tomb", "funston_beach_sunset"]
+    light_names = order[: args.lights or (2 if args.quick else 3)]
+    # the forest alone; the refinement is applied below to the same output
+    config = {"database": {"collection": args.collection}, "training": {"cache_forests": False},
+              "refine": {"when": "never"}}
     db_cfg = DatabaseConfig(collection=args.collection)
     load_database(db_cfg)
     shapes = evaluation_shapes(db_cfg)
@@ -71,15 +80,32 @@ def main() -> None:
             start = time.perf_counter()
             est = sfs_torch.estimate(image, mask, focal=args.focal, config=config, progress=False)
             seconds = time.perf_counter() - start
+            start = time.perf_counter()
             known = sfs_torch.estimate(image, mask, focal=args.focal, lighting=sh, config=config, progress=False)
+            known_seconds = time.perf_counter() - start
+
+            def refined(e, optimise_lighting):
+                begin = time.perf_counter()
+                out = refine_shape_and_lighting(image, mask, e.normals, e.lighting, confidence=e.confidence,
+                                                focal=args.focal, config=RefineConfig(optimise_lighting=optimise_lighting))
+                return out, time.perf_counter() - begin
+
+            est_ref, est_ref_seconds = refined(est, True)
+            known_ref, known_ref_seconds = refined(known, False)
+
+            def error(n):
+                return float(normal_metrics(n, normals, mask).median[0])
+
             rows.append({
                 "shape": shape.name, "lighting": name, "pixels": int(mask.sum()),
-                "silhouette_only": float(normal_metrics(coarse_normals(mask, focal=args.focal), normals, mask).median[0]),
-                "unknown_light": float(normal_metrics(est.normals, normals, mask).median[0]),
-                "known_light": float(normal_metrics(known.normals, normals, mask).median[0]),
-                "lmse": float(lmse(est.lighting, sh)[0]),
-                "seconds": seconds,
-                "stages": {k: v for k, v in est.timings.items() if k != "database"},
+                "silhouette_only": error(coarse_normals(mask, focal=args.focal)),
+                "unknown_light": error(est.normals), "unknown_light_refined": error(est_ref.normals),
+                "known_light": error(known.normals), "known_light_refined": error(known_ref.normals),
+                "lmse": float(lmse(est.lighting, sh)[0]), "lmse_refined": float(lmse(est_ref.lighting, sh)[0]),
+                "seconds": seconds, "seconds_refined": seconds + est_ref_seconds,
+                "known_seconds": known_seconds, "known_seconds_refined": known_seconds + known_ref_seconds,
+                "stages": {**{k: v for k, v in est.timings.items() if k != "database"},
+                           "photometric refinement": est_ref_seconds},
             })
             if args.focal is not None:
                 # Table 3: the same perspective image estimated as if it were orthographic
@@ -93,7 +119,8 @@ def main() -> None:
                 rows[-1]["unknown_light_conv"] = float(normal_metrics(conv.normals, normals, mask).median[0])
             r = rows[-1]
             print(f"{r['shape']:<34} {name:<16} {r['silhouette_only']:6.1f} {r['unknown_light']:6.1f} "
-                  f"{r['known_light']:6.1f} {r['lmse']:8.5f} {seconds:6.2f}s", flush=True)
+                  f"{r['unknown_light_refined']:6.1f} {r['known_light']:6.1f} {r['known_light_refined']:6.1f} "
+                  f"{r['lmse']:8.5f} {r['lmse_refined']:8.5f} {seconds:6.2f}s", flush=True)
 
     def med(key):
         return statistics.median(r[key] for r in rows)
@@ -101,9 +128,13 @@ def main() -> None:
     stages = {k: statistics.median(r["stages"].get(k, 0.0) for r in rows) for k in rows[0]["stages"]}
     summary = {
         "images": len(rows), "resolution": resolution, "collection": args.collection, "focal": args.focal,
-        "median_of_medians_deg": {"silhouette_only": med("silhouette_only"), "unknown_light": med("unknown_light"),
-                                  "known_light": med("known_light")},
-        "median_lmse": med("lmse"), "median_seconds_per_call": med("seconds"), "median_stage_seconds": stages,
+        "lightings": light_names,
+        "median_of_medians_deg": {key: med(key) for key in (
+            "silhouette_only", "unknown_light", "unknown_light_refined", "known_light", "known_light_refined")},
+        "median_lmse": med("lmse"), "median_lmse_refined": med("lmse_refined"),
+        "median_seconds_per_call": {key: med(key) for key in (
+            "seconds", "seconds_refined", "known_seconds", "known_seconds_refined")},
+        "median_stage_seconds": stages,
         "threads": torch.get_num_threads(),
     }
     optional = ["unknown_light_as_orthographic", "unknown_light_l2", "unknown_light_l1", "unknown_light_conv"]
@@ -113,7 +144,9 @@ def main() -> None:
     print()
     print(f"{'method':<36}{'median angular error (deg)':>28}")
     for key, label in [("silhouette_only", "silhouette only (Eq. 10)"), ("unknown_light", "full method, unknown lighting"),
+                       ("unknown_light_refined", "  + photometric refinement"),
                        ("known_light", "full method, known lighting"),
+                       ("known_light_refined", "  + photometric refinement"),
                        ("unknown_light_as_orthographic", "unknown lighting, camera ignored"),
                        ("unknown_light_l2", "unknown lighting + L2 integrability"),
                        ("unknown_light_l1", "unknown lighting + L1 integrability"),
@@ -122,7 +155,10 @@ def main() -> None:
             continue
         print(f"{label:<36}{summary['median_of_medians_deg'][key]:>28.2f}")
     print(f"{'lighting lMSE (median)':<36}{summary['median_lmse']:>28.5f}")
-    print(f"{'seconds per call (median)':<36}{summary['median_seconds_per_call']:>28.2f}")
+    print(f"{'  + photometric refinement':<36}{summary['median_lmse_refined']:>28.5f}")
+    for key, label in [("seconds", "s per call, unknown lighting"), ("seconds_refined", "  + photometric refinement"),
+                       ("known_seconds", "s per call, known lighting"), ("known_seconds_refined", "  + photometric refinement")]:
+        print(f"{label:<36}{summary['median_seconds_per_call'][key]:>28.2f}")
     for k, v in stages.items():
         print(f"  {k:<34}{v:>28.3f}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
