@@ -116,7 +116,13 @@ def render_sh(normals: Tensor, sh: Tensor) -> Tensor:
     return torch.einsum("bck,bkhw->bchw", sh.to(normals.dtype), sh_basis(normals))
 
 
-def fit_sh_vectors(normals: Tensor, colours: Tensor, weights: Optional[Tensor] = None, ridge: float = 1e-9) -> Tensor:
+def fit_sh_vectors(
+    normals: Tensor,
+    colours: Tensor,
+    weights: Optional[Tensor] = None,
+    ridge: float = 1e-9,
+    nonnegative: Optional[Tensor] = None,
+) -> Tensor:
     """Weighted least-squares SH fit to colour samples, in closed form.
 
     Args:
@@ -125,6 +131,9 @@ def fit_sh_vectors(normals: Tensor, colours: Tensor, weights: Optional[Tensor] =
         weights: non-negative sample weights, :math:`(B, N)`; 0 drops a sample.
         ridge: Tikhonov term relative to the mean diagonal of the normal equations,
             which keeps the solve finite when the normals do not span all 9 functions.
+        nonnegative: optional directions :math:`(M, 3)` on which the fitted shading must
+            not be negative (a physically valid lighting there): the constrained least
+            squares, per channel, solved through its dual.
 
     Returns:
         :math:`(B, 3, 9)` coefficients.
@@ -140,10 +149,38 @@ def fit_sh_vectors(normals: Tensor, colours: Tensor, weights: Optional[Tensor] =
     scale = gram.diagonal(dim1=1, dim2=2).mean(-1).clamp_min(torch.finfo(gram.dtype).tiny)
     eye = torch.eye(9, dtype=gram.dtype, device=gram.device)
     gram = gram + ridge * scale[:, None, None] * eye
-    return torch.linalg.solve(gram, rhs).transpose(1, 2).to(out_dtype)
+    solution = torch.linalg.solve(gram, rhs)  # (B, 9, 3)
+    if nonnegative is not None:
+        solution = _nonnegative_solution(gram, rhs, solution, sh_basis_vectors(nonnegative.to(gram)))
+    return solution.transpose(1, 2).to(out_dtype)
 
 
-def fit_sh(normals: Tensor, colours: Tensor, mask: Tensor, weights: Optional[Tensor] = None) -> Tensor:
+def _nonnegative_solution(gram: Tensor, rhs: Tensor, solution: Tensor, basis: Tensor, iterations: int = 500) -> Tensor:
+    """Least squares with the shading on ``basis`` (M, 9) kept >= 0, each channel (B, 9, 3).
+
+    Solves the dual of ``min 1/2 x^T G x - b^T x  s.t.  A x >= 0`` (a non-negative
+    multiplier per direction) by accelerated projected gradient; the primal is
+    ``x = G^-1 (b + A^T lambda)``. Only runs where the unconstrained fit violates.
+    """
+    if not bool(((basis @ solution) < 0).any()):
+        return solution
+    inverse = torch.linalg.inv(gram)  # (B, 9, 9), shared by the channels
+    coupling = basis @ inverse @ basis.T  # (B, M, M)
+    step = 1.0 / torch.linalg.eigvalsh(coupling)[:, -1].clamp_min(torch.finfo(gram.dtype).tiny)
+    lam = torch.zeros(gram.shape[0], basis.shape[0], 3, dtype=gram.dtype, device=gram.device)
+    y, momentum = lam, 1.0
+    for _ in range(iterations):
+        shading = basis @ (inverse @ (rhs + basis.T @ y))  # (B, M, 3): the dual gradient
+        new = (y - step[:, None, None] * shading).clamp_min(0)
+        next_momentum = 0.5 * (1.0 + (1.0 + 4.0 * momentum * momentum) ** 0.5)
+        y = new + ((momentum - 1.0) / next_momentum) * (new - lam)
+        lam, momentum = new, next_momentum
+    return inverse @ (rhs + basis.T @ lam)
+
+
+def fit_sh(
+    normals: Tensor, colours: Tensor, mask: Tensor, weights: Optional[Tensor] = None, nonnegative: Optional[Tensor] = None
+) -> Tensor:
     """Fit SH lighting to an image of known normals (closed-form least squares).
 
     Args:
@@ -151,6 +188,8 @@ def fit_sh(normals: Tensor, colours: Tensor, mask: Tensor, weights: Optional[Ten
         colours: linear RGB, :math:`(B, 3, H, W)`.
         mask: pixels to use, :math:`(B, 1, H, W)` bool.
         weights: optional per-pixel weights, :math:`(B, 1, H, W)`, non-negative.
+        nonnegative: optional directions :math:`(M, 3)` where the fitted shading must
+            not be negative (see :func:`fit_sh_vectors`).
 
     Returns:
         :math:`(B, 3, 9)` SH coefficients minimising the (weighted) squared shading error.
@@ -173,7 +212,8 @@ def fit_sh(normals: Tensor, colours: Tensor, mask: Tensor, weights: Optional[Ten
             raise ValueError("weights must be non-negative")
         w = w * weights.to(normals.dtype)
     return fit_sh_vectors(
-        normals.flatten(2).transpose(1, 2), colours.to(normals.dtype).flatten(2).transpose(1, 2), w.flatten(1)
+        normals.flatten(2).transpose(1, 2), colours.to(normals.dtype).flatten(2).transpose(1, 2), w.flatten(1),
+        nonnegative=nonnegative,
     )
 
 

@@ -29,6 +29,8 @@ from .silhouette import silhouette_distances
 __all__ = ["ReflectanceMapConfig", "sphere_mapping", "estimate_lighting", "refit_lighting", "hemisphere_directions"]
 
 PROFILES = ("sphere", "linear")
+# directions of the visible hemisphere on which a refitted lighting must shade >= 0
+VALIDITY_DIRECTIONS = 400
 
 
 @dataclass
@@ -159,7 +161,10 @@ def refit_lighting(image: Tensor, mask: Tensor, normals: Tensor) -> Tensor:
     """SH lighting that best shades ``normals`` into ``image`` (least squares, Lambertian).
 
     Pixels clipped at 0 or 1 in any channel are left out, since their shading is not
-    what the image shows; if every object pixel is clipped, all are used.
+    what the image shows; if every object pixel is clipped, all are used. The fit is
+    constrained to a physically valid lighting: its shading is non-negative on the
+    visible hemisphere (``n_z >= 0``; :func:`sfs_torch.lighting.fit_sh_vectors`), which
+    an unconstrained fit to few or one-sided pixels can violate.
 
     Args:
         image: linear RGB, :math:`(B, 3, H, W)`.
@@ -174,7 +179,8 @@ def refit_lighting(image: Tensor, mask: Tensor, normals: Tensor) -> Tensor:
     check_same_size(image, "image", mask, "mask")
     unclipped = mask & ((image > 0) & (image < 1)).all(1, keepdim=True)
     usable = unclipped.flatten(1).any(1)[:, None, None, None]
-    return fit_sh(normals, image, torch.where(usable, unclipped, mask))
+    hemisphere = hemisphere_directions(VALIDITY_DIRECTIONS, device=image.device, dtype=torch.float64)
+    return fit_sh(normals, image, torch.where(usable, unclipped, mask), nonnegative=hemisphere)
 
 
 def _match_statistics(sh: Tensor, pixel_dirs: Tensor, pixel_colours: Tensor) -> Tensor:

@@ -96,6 +96,30 @@ class TestFitSH:
         fitted = fit_sh(n, render_sh(n, sh), mask)
         assert (fitted - sh).abs().max() < 1e-5
 
+    def test_nonnegative_constraint(self):
+        # a lighting that is negative on part of the hemisphere, observed on all of it
+        n = random_normals(1, 16, 16, torch.float64)
+        n[:, 2] = n[:, 2].abs()
+        sh = torch.zeros(1, 3, 9, dtype=torch.float64)
+        sh[:, :, 0], sh[:, :, 3] = 1.0, 2.0  # 0.28 + 0.98 x: negative for x < -0.29
+        mask = torch.ones(1, 1, 16, 16, dtype=torch.bool)
+        image = render_sh(n, sh)
+        directions = n.flatten(2)[0].T
+        assert torch.allclose(fit_sh(n, image, mask), sh, atol=1e-6)
+        fitted = fit_sh(n, image, mask, nonnegative=directions)
+        shading = render_sh(n, fitted)
+        assert float(shading.min()) > -1e-3 and float(image.min()) < -0.5
+        # where the true shading is comfortably positive the constrained fit stays close to it
+        assert float((shading - image)[image > 0.5].abs().median()) < 0.2
+
+    def test_nonnegative_leaves_valid_fits_alone(self):
+        n = random_normals(1, 16, 16, torch.float64)
+        sh = natural_lightings()["st_peters_basilica"].double()[None]
+        mask = torch.ones(1, 1, 16, 16, dtype=torch.bool)
+        image = render_sh(n, sh)
+        directions = n.flatten(2)[0].T[n.flatten(2)[0, 2] > 0]
+        assert torch.allclose(fit_sh(n, image, mask, nonnegative=directions), fit_sh(n, image, mask))
+
     def test_hemisphere_round_trip(self):
         # The visible hemisphere alone determines all 9 coefficients.
         sphere = sphere_normals(64)

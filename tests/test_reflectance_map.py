@@ -3,7 +3,7 @@ import torch
 from scenes import sphere
 
 from sfs_torch.camera import centroid_rotation
-from sfs_torch.lighting import natural_lightings, render_sh, rotate_sh
+from sfs_torch.lighting import fit_sh, natural_lightings, render_sh, render_sphere, rotate_sh
 from sfs_torch.metrics import lmse
 from sfs_torch.reflectance_map import (
     ReflectanceMapConfig,
@@ -104,6 +104,18 @@ class TestRefitLighting:
         sh = refit_lighting(image, mask, normals)
         # a constant white image is fitted by a constant (ambient-only) lighting
         assert torch.allclose(render_sh(normals, sh)[mask.expand(-1, 3, -1, -1)], torch.ones(1), atol=1e-4)
+
+    def test_saturated_image_and_wrong_normals_give_a_valid_lighting(self):
+        # most of the object saturated and normals tilted away: an unconstrained fit to
+        # the few unclipped pixels shades parts of the hemisphere negative (-1.25 here)
+        normals, mask = sphere_image(64, 26.0)
+        image = (8 * render_sh(normals, natural_lightings(0.8)["campus_sunset"][None])).clamp(0, 1) * mask
+        wrong = torch.nn.functional.normalize(normals + torch.tensor([0.8, 0.0, 0.0]).view(1, 3, 1, 1), dim=1) * mask
+        unclipped = mask & ((image > 0) & (image < 1)).all(1, keepdim=True)
+        assert float(render_sphere(fit_sh(wrong, image, unclipped), 64).min()) < -1.0
+        sh = refit_lighting(image, mask, wrong)
+        sphere_render = render_sphere(sh, 64)
+        assert float(sphere_render.min()) > -0.005 * float(sphere_render.max())
 
     def test_exception(self):
         normals, mask = sphere_image(32, 12.0)
