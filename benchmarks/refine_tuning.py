@@ -4,11 +4,12 @@ The refinement's options (``sfs_torch.refine.RefineConfig``) were chosen on thes
 only: the odd-indexed evaluation shapes of the database split (``benchmarks/end_to_end.py``
 reports on the even-indexed ones) under the eight CC0 Poly Haven environments of
 ``sfs_torch.natural_lighting`` seen by randomly oriented cameras (never R&H's probes),
-128 px, noise 0.001. For each image: the forest in unknown and in known lighting, and
-the refinement of each (``when=always`` / ``when=known``) with the options given.
+256 px like the benchmark, noise 0.001. For each image: the forest in unknown and in known lighting, and
+the refinement of each (``when=always`` / ``when=known``) for every variant of the
+options given (the forests are shared by the variants).
 
-    python benchmarks/refine_tuning.py                         # 4 shapes x 2 lightings
-    python benchmarks/refine_tuning.py --set iterations=200    # a variant
+    python benchmarks/refine_tuning.py                          # 4 shapes x 2 lightings, defaults
+    python benchmarks/refine_tuning.py --variants '{}' '{"normal_weight": 0.2}'
 """
 from __future__ import annotations
 
@@ -48,43 +49,46 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--shapes", type=int, default=4)
     parser.add_argument("--lights-per-shape", type=int, default=2)
-    parser.add_argument("--set", nargs="*", default=[], help="RefineConfig overrides, key=value")
+    parser.add_argument("--resolution", type=int, default=256)
+    parser.add_argument("--variants", nargs="*", default=["{}"], help="RefineConfig overrides, one JSON object each")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "refine_tuning.json")
     args = parser.parse_args()
-    options = {k: json.loads(v) for k, v in (item.split("=", 1) for item in args.set)}
+    variants = [json.loads(v) for v in args.variants]
     config = {"training": {"cache_forests": False}, "refine": {"when": "never"}}
     generator = torch.Generator().manual_seed(0)
     shapes = evaluation_shapes(DatabaseConfig())[1::2][: args.shapes]
     lights = tuning_lightings(args.shapes * args.lights_per_shape, generator)
     rows = []
     for k, shape in enumerate(shapes):
-        view = render_normals(shape.mesh, random_view_rotations(1, generator)[0], 128)
+        view = render_normals(shape.mesh, random_view_rotations(1, generator)[0], args.resolution)
         normals, mask = view.normals[None], view.mask[None]
         for name, sh in lights[k * args.lights_per_shape : (k + 1) * args.lights_per_shape]:
             sh = sh[None]
             image = (render_sh(normals, sh) + 0.001 * torch.randn(normals.shape, generator=generator)).clamp(0, 1) * mask
             est = sfs_torch.estimate(image, mask, config=config, progress=False)
             known = sfs_torch.estimate(image, mask, lighting=sh, config=config, progress=False)
-            est_ref = refine_shape_and_lighting(image, mask, est.normals, est.lighting, confidence=est.confidence,
-                                                config=RefineConfig(**options))
-            known_ref = refine_shape_and_lighting(image, mask, known.normals, sh, confidence=known.confidence,
-                                                  config=RefineConfig(**{**options, "optimise_lighting": False}))
 
             def error(n):
                 return float(normal_metrics(n, normals, mask).median[0])
 
-            rows.append({"shape": shape.name, "lighting": name, "unknown": error(est.normals),
-                         "unknown_refined": error(est_ref.normals), "known": error(known.normals),
-                         "known_refined": error(known_ref.normals), "lmse": float(lmse(est.lighting, sh)[0]),
-                         "lmse_refined": float(lmse(est_ref.lighting, sh)[0])})
+            row = {"shape": shape.name, "lighting": name, "unknown": error(est.normals), "known": error(known.normals),
+                   "lmse": float(lmse(est.lighting, sh)[0])}
+            for i, options in enumerate(variants):
+                est_ref = refine_shape_and_lighting(image, mask, est.normals, est.lighting, confidence=est.confidence,
+                                                    config=RefineConfig(**options))
+                known_ref = refine_shape_and_lighting(image, mask, known.normals, sh, confidence=known.confidence,
+                                                      config=RefineConfig(**{**options, "optimise_lighting": False}))
+                row.update({f"unknown_refined_{i}": error(est_ref.normals), f"known_refined_{i}": error(known_ref.normals),
+                            f"lmse_refined_{i}": float(lmse(est_ref.lighting, sh)[0])})
+            rows.append(row)
             print(" ".join(f"{v:.4f}" if isinstance(v, float) else f"{v:<28}" for v in rows[-1].values()), flush=True)
     keys = [k for k in rows[0] if k not in ("shape", "lighting")]
     summary = {key: statistics.median(r[key] for r in rows) for key in keys}
-    print(f"\nmedian over {len(rows)} images ({options or 'defaults'}):")
+    print(f"\nmedian over {len(rows)} images; variants: {dict(enumerate(variants))}")
     for key, value in summary.items():
         print(f"  {key:<18}{value:10.4f}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"options": options, "summary": summary, "rows": rows}, indent=2))
+    args.out.write_text(json.dumps({"variants": variants, "summary": summary, "rows": rows}, indent=2))
     print(f"wrote {args.out}")
 
 

@@ -13,8 +13,8 @@
    an addition to the paper that measurably helps, see docs/pipeline.md);
 5. perspective: the normals, predicted in the object's orthographic frame, rotated
    into the camera frame (:mod:`sfs_torch.camera`);
-6. photometric refinement (:mod:`sfs_torch.refine`, not in the paper): an integrable
-   surface fitted to the image, by default when the lighting is given
+6. photometric refinement (:mod:`sfs_torch.refine`, not in the paper): the normals
+   fitted to the image under the lighting, by default when the lighting is given
    (``refine.when``);
 7. optional integrability refinement (:mod:`sfs_torch.integrability`).
 """
@@ -118,8 +118,8 @@ class Estimate:
             estimate after ``reflectance_map.refine_rounds`` refits (the one the
             final forest was trained for), photometrically refined when
             ``refine.when="always"``.
-        depth: :math:`(B, 1, H, W)` from the photometric or integrability refinement,
-            else ``None``.
+        depth: :math:`(B, 1, H, W)` from integrability (``integrate=``) or from the
+            photometric refinement's surface model (``refine.model=surface``), else ``None``.
         mask: :math:`(B, 1, H, W)` the object mask used.
         timings: seconds spent per stage, summed over the batch.
     """
@@ -360,7 +360,7 @@ def estimate(
     check_finite(image_b, "image")
     if bool((image_b < 0).any()) or bool((image_b > 1).any()):
         raise ValueError("image must hold linear RGB values in [0, 1]; rescale it (or decode 8/16-bit integers first)")
-    image_b = image_b.float()
+    image_b = image_b.float().contiguous()  # a numpy (H, W, 3) view gives the same sums as a tensor
     mask_b = check_mask(_as_mask_tensor(mask, image_b, single))
     check_same_size(image_b, "image", mask_b, "mask")
 
@@ -423,7 +423,8 @@ def estimate(
         with timer("photometric refinement"):
             refined = refine_shape_and_lighting(
                 image_b, mask_b, normals, sh, confidence=confidence, focal=focal, principal_point=principal_point,
-                config=replace(cfg.refine, optimise_lighting=lighting is None),
+                # a given lighting is trusted exactly, never refined
+                config=replace(cfg.refine, optimise_lighting=cfg.refine.optimise_lighting and lighting is None),
             )
         depth, normals, sh = refined.depth, refined.normals, refined.lighting
     if integrate is not None:

@@ -1,35 +1,43 @@
-r"""Photometric refinement: a surface and a lighting that explain the image (not in the paper).
+r"""Photometric refinement: normals (and a lighting) that explain the image (not in the paper).
 
-The forest predicts every pixel on its own, for one lighting hypothesis. This stage
-fits an integrable surface and the SH lighting jointly to the image, with torch
-autograd (L-BFGS), starting from the forest's normals (integrated by
-:func:`sfs_torch.integrability.integrate_normals`) and the lighting they were
-predicted for. It minimises, per image,
+The forest predicts every pixel on its own, for one lighting. This stage fits the
+normals to the image itself, with torch autograd (L-BFGS), starting from the forest's
+normals and the lighting they were predicted for. Two models of the normals:
+
+- ``model="pixel"`` (default): one free unit normal per pixel, the lighting held fixed.
+  Self-occluding objects (a leg in front of a body) keep their depth discontinuities;
+- ``model="surface"``: the normals of one integrable field ``s`` (height, orthographic,
+  or log-depth, perspective; :func:`sfs_torch.integrability.field_normals`), started
+  from the kappa-weighted L2 integration of the forest's normals, optionally with the
+  lighting refined jointly. It gives a depth map, but cannot represent discontinuities.
+
+Both minimise, per image,
 
 .. math::
 
-    E(s, L) = \underbrace{\tfrac{1}{|V|}\sum_{p \in V} \rho\big((R(n_p(s), L) - I_p)/\bar I\big)}_{\text{photometric}}
-        + \lambda_\kappa \underbrace{\tfrac{1}{|M|}\sum_{p \in M} w_p (1 - \mu_p^\top n_p(s))}_{\text{forest (vMF) prior}}
-        + \lambda_c \underbrace{\tfrac{1}{|C|}\sum_{p \in C} (1 - c_p^\top n_p(s))}_{\text{occluding contour}}
+    E(n, L) = \underbrace{\tfrac{1}{|M|}\sum_{p \in M} \rho\big(r_p / \bar I\big)}_{\text{photometric}}
+        + \lambda_\kappa \underbrace{\tfrac{1}{|M|}\sum_{p \in M} w_p (1 - \mu_p^\top n_p)}_{\text{forest (vMF) prior}}
+        + \lambda_c \underbrace{\tfrac{1}{|C|}\sum_{p \in C} (1 - c_p^\top n_p)}_{\text{occluding contour}}
+        + \lambda_s \underbrace{\tfrac{1}{|M|}\sum_{p \sim q} |n_p - n_q|^2}_{\text{smoothness}}
         + \lambda_L \underbrace{E_{\text{prior}}(L)}_{\text{natural lighting}}
 
-- ``s`` is the height (orthographic) or log-depth (perspective) on the mask and
-  ``n(s)`` its normals (:func:`sfs_torch.integrability.field_normals`), so the normals
-  are integrable by construction;
-- ``R`` renders SH lighting (:func:`sfs_torch.lighting.render_sh`), ``rho`` is the
-  Charbonnier penalty ``sqrt(x^2 + delta^2) - delta``, ``V`` the object pixels not
-  clipped at 0 or 1, ``\bar I`` the mean image value there (the loss is scale-free);
+- ``r = R(n, L) - I`` with ``R`` the SH rendering (:func:`sfs_torch.lighting.render_sh`);
+  at pixels clipped at 0 (at or below ``dark_level``) or at 1 the residual is one-sided
+  (an attached shadow may render below 0, a highlight above 1); ``rho`` is the
+  Charbonnier penalty ``sqrt(x^2 + delta^2) - delta`` and ``\bar I`` the mean image
+  value on the mask ``M`` (the loss is scale-free);
 - ``mu`` are the forest's normals and ``w = min(kappa / mean kappa, 3)`` its confidence
   (the vMF log-likelihood ``kappa mu^T n`` up to a constant and a scale);
-- ``C`` are the rim pixels of the mask and ``c`` their silhouette normals (Eq. 10),
-  which point outwards and almost perpendicular to the view ray;
-- ``E_prior`` is :func:`sfs_torch.natural_lighting.lighting_prior_energy`.
+- ``C`` are the rim pixels of the mask and ``c`` their silhouette normals (Eq. 10);
+- ``p ~ q`` are 4-neighbours both on the mask;
+- ``E_prior`` is :func:`sfs_torch.natural_lighting.lighting_prior_energy` (constant when
+  the lighting is held fixed).
 """
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -55,34 +63,38 @@ class RefineConfig:
 
     Attributes:
         when: when :func:`sfs_torch.estimate` runs this stage: ``"never"``, ``"known"``
-            (only when the lighting is given; the lighting is then held fixed) or
-            ``"always"`` (an estimated lighting is refined too). The default is the
-            measured one (docs/refine.md).
+            (only when the lighting is given) or ``"always"`` (an estimated lighting
+            too). The default is the measured one (docs/refine.md).
+        model: ``"pixel"`` (a free normal per pixel, the lighting held fixed) or
+            ``"surface"`` (an integrable field, see the module docstring).
         iterations: L-BFGS iterations (each one evaluation of the loss and its gradient
             at least; the strong-Wolfe line search may add a few).
         delta: Charbonnier smoothing of the photometric residual, relative to the mean
             image value (residuals well above it count linearly: robust to highlights
             and shadows the SH model cannot explain).
+        dark_level: image values at or below this count as clipped at 0 (with the
+            noise of a real sensor an attached shadow reads slightly above 0).
         normal_weight: ``lambda_kappa``, pull towards the forest's normals.
         contour_weight: ``lambda_c``, pull of the rim normals towards the silhouette's.
+        smoothness: ``lambda_s``, pull of neighbouring normals towards each other.
         lighting_weight: ``lambda_L``, pull of the lighting towards the natural-lighting prior.
-        optimise_lighting: fit the lighting too (``False``: the lighting is held fixed,
-            e.g. when it is known; :func:`sfs_torch.estimate` sets it by itself).
-        rim_width: rings of rim pixels left out of the photometric term (their finite
-            differences are one-sided).
-        levels: levels of the coarse-to-fine parameterisation of the surface (the field
-            is a sum of bilinearly upsampled grids at 1, 1/2, ..., 1/2^(levels-1) of the
-            resolution), which lets L-BFGS fix smooth errors quickly.
+        optimise_lighting: ``model="surface"`` only: fit the lighting too (``False``: held
+            fixed; :func:`sfs_torch.estimate` holds a given lighting fixed by itself).
+        levels: ``model="surface"`` only: levels of the coarse-to-fine parameterisation
+            (the field is a sum of bilinearly upsampled grids at 1, 1/2, ...,
+            1/2^(levels-1) of the resolution), which lets L-BFGS fix smooth errors quickly.
     """
 
     when: str = "known"
+    model: str = "pixel"
     iterations: int = 60
     delta: float = 0.02
-    normal_weight: float = 0.05
+    dark_level: float = 0.004
+    normal_weight: float = 0.2
     contour_weight: float = 0.05
+    smoothness: float = 0.01
     lighting_weight: float = 0.01
     optimise_lighting: bool = True
-    rim_width: int = 0
     levels: int = 5
 
 
@@ -94,6 +106,7 @@ class RefinementLoss:
     photometric: Tensor
     normal_prior: Tensor
     contour: Tensor
+    smoothness: Tensor
     lighting_prior: Tensor
 
 
@@ -102,14 +115,15 @@ class Refinement:
     """Result of :func:`refine_shape_and_lighting`.
 
     Attributes:
-        depth: :math:`(B, 1, H, W)` as :class:`sfs_torch.integrability.Surface` defines it
-            (orthographic height, or perspective distance along the axis), 0 outside.
-        normals: :math:`(B, 3, H, W)` that surface's unit normals, 0 outside.
+        depth: ``model="surface"``: :math:`(B, 1, H, W)` as
+            :class:`sfs_torch.integrability.Surface` defines it (orthographic height, or
+            perspective distance along the axis), 0 outside; ``model="pixel"``: ``None``.
+        normals: :math:`(B, 3, H, W)` refined unit normals, 0 outside.
         lighting: :math:`(B, 3, 9)` refined SH lighting (the input one if held fixed).
         loss_before, loss_after: :math:`(B,)` the total loss at the start and at the end.
     """
 
-    depth: Tensor
+    depth: Optional[Tensor]
     normals: Tensor
     lighting: Tensor
     loss_before: Tensor
@@ -117,18 +131,20 @@ class Refinement:
 
 
 WHEN = ("never", "known", "always")
+MODELS = ("pixel", "surface")
 
 
 def check_refine_config(cfg: RefineConfig) -> None:
     """Raise ``ValueError`` naming the option for an invalid :class:`RefineConfig`."""
     if cfg.when not in WHEN:
         raise ValueError(f"refine.when must be one of {WHEN}, got {cfg.when!r}")
-    for name in ("iterations", "rim_width"):
-        if getattr(cfg, name) < 0:
-            raise ValueError(f"refine.{name} must be >= 0, got {getattr(cfg, name)}")
+    if cfg.model not in MODELS:
+        raise ValueError(f"refine.model must be one of {MODELS}, got {cfg.model!r}")
+    if cfg.iterations < 0:
+        raise ValueError(f"refine.iterations must be >= 0, got {cfg.iterations}")
     if cfg.levels < 1:
         raise ValueError(f"refine.levels must be >= 1, got {cfg.levels}")
-    for name in ("delta", "normal_weight", "contour_weight", "lighting_weight"):
+    for name in ("delta", "normal_weight", "contour_weight", "smoothness", "lighting_weight", "dark_level"):
         if not getattr(cfg, name) >= 0:
             raise ValueError(f"refine.{name} must be >= 0, got {getattr(cfg, name)}")
     if not cfg.delta > 0:
@@ -150,7 +166,7 @@ def _masked_mean(x: Tensor, m: Tensor) -> Tensor:
 
 
 def refinement_loss(
-    field: Tensor,
+    normals: Tensor,
     lighting: Tensor,
     image: Tensor,
     mask: Tensor,
@@ -158,17 +174,17 @@ def refinement_loss(
     confidence: Tensor,
     rim_normals: Tensor,
     *,
-    focal: Optional[float] = None,
-    principal_point: Optional[Sequence[float]] = None,
     config: Optional[RefineConfig] = None,
     lighting_prior: Optional[LightingPrior] = None,
 ) -> RefinementLoss:
-    """The refinement energy of a surface and a lighting (see the module docstring).
+    """The refinement energy of normals and a lighting (see the module docstring).
 
     Unchecked inner-loop form; :func:`refine_shape_and_lighting` validates its inputs.
+    Differentiable in ``normals`` and ``lighting`` (for the surface model, compose with
+    :func:`sfs_torch.integrability.field_normals`).
 
     Args:
-        field: :math:`(B, H, W)` height (orthographic) or log-depth (perspective).
+        normals: :math:`(B, 3, H, W)` unit normals, 0 outside the mask.
         lighting: :math:`(B, 3, 9)`.
         image: :math:`(B, 3, H, W)` linear RGB.
         mask: :math:`(B, 1, H, W)` bool object pixels.
@@ -176,31 +192,33 @@ def refinement_loss(
         confidence: :math:`(B, 1, H, W)` per-pixel weights ``w`` of the normal prior.
         rim_normals: :math:`(B, 3, H, W)` target normals on the rim, 0 elsewhere (rim =
             non-zero).
-        focal, principal_point: camera; ``focal=None`` is orthographic.
-        config: weights and the Charbonnier ``delta``.
+        config: weights, ``delta`` and ``dark_level``.
         lighting_prior: natural-lighting prior (``None``: the packaged one).
 
     Returns:
         :class:`RefinementLoss`.
     """
     cfg = config or RefineConfig()
-    m = mask[:, 0]
-    normals = field_normals(field, m, focal, principal_point)
-    interior = mask
-    for _ in range(cfg.rim_width):
-        interior = interior & ~rim_pixels(interior)
-    valid = interior & ((image > 0) & (image < 1)).all(1, keepdim=True)
-    scale = _masked_mean(image, valid).clamp_min(1e-6)[:, None, None, None]
-    residual = (render_sh(normals, lighting) - image) / scale
+    scale = _masked_mean(image, mask).clamp_min(1e-6)[:, None, None, None]
+    residual = render_sh(normals, lighting) - image
+    # clipped pixels only bound the shading: an attached shadow may render below 0 and a
+    # highlight above 1
+    residual = torch.where(image <= cfg.dark_level, residual.clamp_min(0),
+                           torch.where(image >= 1, residual.clamp_max(0), residual)) / scale
     delta = cfg.delta
-    photometric = _masked_mean(torch.sqrt(residual * residual + delta * delta) - delta, valid)
+    photometric = _masked_mean(torch.sqrt(residual * residual + delta * delta) - delta, mask)
     normal_prior = _masked_mean(confidence * (1 - (normals * prior_normals).sum(1, keepdim=True)), mask)
     rim = rim_normals.abs().sum(1, keepdim=True) > 0
     contour = _masked_mean(1 - (normals * rim_normals).sum(1, keepdim=True), rim)
+    mf = mask.to(normals.dtype)
+    dx = (normals[..., :, 1:] - normals[..., :, :-1]).square().sum(1, keepdim=True) * mf[..., :, 1:] * mf[..., :, :-1]
+    dy = (normals[..., 1:, :] - normals[..., :-1, :]).square().sum(1, keepdim=True) * mf[..., 1:, :] * mf[..., :-1, :]
+    smooth = (dx.flatten(1).sum(1) + dy.flatten(1).sum(1)) / mf.flatten(1).sum(1).clamp_min(1.0)
     prior = lighting_prior if lighting_prior is not None else load_lighting_prior(device=lighting.device)
     light = lighting_prior_energy(lighting, prior.to(lighting.device, lighting.dtype))
-    total = photometric + cfg.normal_weight * normal_prior + cfg.contour_weight * contour + cfg.lighting_weight * light
-    return RefinementLoss(total, photometric, normal_prior, contour, light)
+    total = (photometric + cfg.normal_weight * normal_prior + cfg.contour_weight * contour
+             + cfg.smoothness * smooth + cfg.lighting_weight * light)
+    return RefinementLoss(total, photometric, normal_prior, contour, smooth, light)
 
 
 def refine_shape_and_lighting(
@@ -215,14 +233,15 @@ def refine_shape_and_lighting(
     config: Optional[RefineConfig] = None,
     lighting_prior: Optional[LightingPrior] = None,
 ) -> Refinement:
-    """Fit an integrable surface and the SH lighting to one image, from a first guess.
+    """Fit normals (per pixel, or of an integrable surface) and optionally the lighting to an image.
 
     Args:
         image: :math:`(B, 3, H, W)` linear RGB in [0, 1].
         mask: :math:`(B, 1, H, W)` bool or 0/1 object pixels.
         normals: :math:`(B, 3, H, W)` camera-frame unit normals to start from and to
             stay near (e.g. the forest's prediction).
-        lighting: :math:`(B, 3, 9)` SH lighting to start from (camera frame).
+        lighting: :math:`(B, 3, 9)` SH lighting (camera frame), held fixed or, for
+            ``model="surface"`` with ``optimise_lighting``, the start of its fit.
         confidence: :math:`(B, 1, H, W)` non-negative per-pixel confidence of
             ``normals`` (e.g. the forest's kappa); ``None``: uniform.
         focal, principal_point: camera; ``focal=None`` is orthographic.
@@ -259,40 +278,70 @@ def refine_shape_and_lighting(
     mean_conf = (confidence * mf).flatten(1).sum(1) / mf.flatten(1).sum(1)
     weights = (confidence / mean_conf.clamp_min(1e-12)[:, None, None, None]).clamp_max(MAX_CONFIDENCE_WEIGHT) * mf
     rim_normals = coarse_normals(mask, focal, principal_point).to(image.dtype) * rim_pixels(mask)
-    # one image at a time: a batched line search (and the integration's batch-wide
-    # stopping rule) would couple the images
-    parts = [
-        _optimise(lighting[b : b + 1].to(image.dtype), image[b : b + 1], mask[b : b + 1], normals[b : b + 1],
-                  weights[b : b + 1], rim_normals[b : b + 1], focal, principal_point, cfg, prior)
-        for b in range(image.shape[0])
-    ]
-    field, light, before, after = (torch.cat(x) for x in zip(*parts))
-    m = mask[:, 0]
+    height, width = image.shape[-2:]
+    centre = (width / 2.0, height / 2.0) if principal_point is None else tuple(float(c) for c in principal_point)
+    # the optimised variable: per-pixel normals (B, 3, H, W), or the surface field (B, H, W)
+    result = torch.zeros_like(normals if cfg.model == "pixel" else image[:, 0])
+    lights, before, after = [], [], []
+    # one image at a time, on its object's bounding box: a batched line search (and the
+    # integration's batch-wide stopping rule) would couple the images, and the
+    # background costs time but adds nothing
+    for b in range(image.shape[0]):
+        rows, cols = _bounding_box(mask[b, 0], margin=2)
+        crop = (b, slice(None), rows, cols)
+        f, light, loss_before, loss_after = _optimise(
+            lighting[b : b + 1].to(image.dtype), image[crop][None], mask[crop][None], normals[crop][None],
+            weights[crop][None], rim_normals[crop][None], focal, (centre[0] - cols.start, centre[1] - rows.start),
+            cfg, prior,
+        )
+        result[(b, Ellipsis, rows, cols)] = f[0]
+        lights.append(light)
+        before.append(loss_before)
+        after.append(loss_after)
+    light, before, after = torch.cat(lights), torch.cat(before), torch.cat(after)
     with torch.no_grad():
-        depth = field if focal is None else torch.where(m, torch.exp(field), 0.0)
-        out_normals = field_normals(field, m, focal, principal_point)
-    return Refinement(depth=depth[:, None] * mf, normals=out_normals, lighting=light,
-                      loss_before=before, loss_after=after)
+        if cfg.model == "pixel":
+            return Refinement(depth=None, normals=result, lighting=light, loss_before=before, loss_after=after)
+        m = mask[:, 0]
+        depth = result if focal is None else torch.where(m, torch.exp(result), 0.0)
+        out_normals = field_normals(result, m, focal, principal_point)
+    return Refinement(depth=depth[:, None] * mf, normals=out_normals, lighting=light, loss_before=before,
+                      loss_after=after)
+
+
+def _bounding_box(m: Tensor, margin: int) -> Tuple[slice, slice]:
+    """Row and column slices around the ``True`` pixels of ``m`` (H, W), widened by ``margin``."""
+    rows = torch.nonzero(m.any(1)).flatten()
+    cols = torch.nonzero(m.any(0)).flatten()
+    r0, r1 = int(rows[0]), int(rows[-1]) + 1
+    c0, c1 = int(cols[0]), int(cols[-1]) + 1
+    return (slice(max(r0 - margin, 0), min(r1 + margin, m.shape[0])),
+            slice(max(c0 - margin, 0), min(c1 + margin, m.shape[1])))
 
 
 def _optimise(lighting, image, mask, normals, weights, rim_normals, focal, principal_point, cfg, prior):
-    """L-BFGS on one image from the integrated normals: the field, the lighting, the loss before and after."""
+    """L-BFGS on one image: the optimised variable, the lighting, the loss before and after."""
     m = mask[:, 0]
-    with torch.no_grad():
-        surface = integrate_normals(normals, mask, method="l2", weights=weights, focal=focal,
-                                    principal_point=principal_point)
-    start = surface.depth[:, 0] if focal is None else torch.log(torch.where(m, surface.depth[:, 0], 1.0))
-    pyramid = _Pyramid(torch.where(m, start, 0.0), cfg.levels)
-    light = lighting.detach().clone().requires_grad_(cfg.optimise_lighting)
-    params = pyramid.levels + ([light] if cfg.optimise_lighting else [])
+    if cfg.model == "pixel":
+        variable = _PixelNormals(normals, mask)
+        optimise_lighting = False
+    else:
+        with torch.no_grad():
+            surface = integrate_normals(normals, mask, method="l2", weights=weights, focal=focal,
+                                        principal_point=principal_point)
+        start = surface.depth[:, 0] if focal is None else torch.log(torch.where(m, surface.depth[:, 0], 1.0))
+        variable = _Pyramid(torch.where(m, start, 0.0), cfg.levels, m, focal, principal_point)
+        optimise_lighting = cfg.optimise_lighting
+    light = lighting.detach().clone().requires_grad_(optimise_lighting)
+    params = variable.parameters + ([light] if optimise_lighting else [])
 
-    def loss_of(f: Tensor, l: Tensor) -> Tensor:
-        return refinement_loss(f, l, image, mask, normals, weights, rim_normals, focal=focal,
-                               principal_point=principal_point, config=cfg, lighting_prior=prior).total
+    def loss_of(l: Tensor) -> Tensor:
+        return refinement_loss(variable.normals(), l, image, mask, normals, weights, rim_normals, config=cfg,
+                               lighting_prior=prior).total
 
     with torch.no_grad():
-        start_field = pyramid.field()
-        before = loss_of(start_field, light)
+        start_value = variable.value()
+        before = loss_of(light)
     start_light = light.detach().clone()
     if cfg.iterations > 0 and bool(torch.isfinite(before).all()):
         optimiser = torch.optim.LBFGS(params, lr=1.0, max_iter=cfg.iterations, history_size=20,
@@ -300,7 +349,7 @@ def _optimise(lighting, image, mask, normals, weights, rim_normals, focal, princ
 
         def closure() -> Tensor:
             optimiser.zero_grad()
-            loss = loss_of(pyramid.field(), light).sum()
+            loss = loss_of(light).sum()
             loss.backward()
             return loss
 
@@ -310,32 +359,50 @@ def _optimise(lighting, image, mask, normals, weights, rim_normals, focal, princ
         except RuntimeError as err:  # a line search that ran off to overflow
             log.warning("photometric refinement diverged (%s); keeping its start", err)
     with torch.no_grad():
-        field = pyramid.field()
-        after = loss_of(field, light)
+        value = variable.value()
+        after = loss_of(light)
     # never return something worse than the start (or non-finite)
     if not bool(torch.isfinite(after).all()) or bool((after > before).any()):
-        return start_field, start_light, before, before
-    return field, light.detach(), before, after
+        return start_value, start_light, before, before
+    return value, light.detach(), before, after
+
+
+class _PixelNormals:
+    """One free normal per pixel, parameterised by an unnormalised vector."""
+
+    def __init__(self, start: Tensor, mask: Tensor):
+        self.mask = mask
+        self.vector = start.detach().clone().requires_grad_(True)
+        self.parameters = [self.vector]
+
+    def normals(self) -> Tensor:
+        return F.normalize(self.vector, dim=1) * self.mask
+
+    def value(self) -> Tensor:
+        return self.normals().detach()
 
 
 class _Pyramid:
-    """A field as the sum of upsampled coarser levels: plain gradient steps on per-pixel
-    values fix smooth errors very slowly, steps on coarse levels fix them at once."""
+    """A surface field as the sum of upsampled coarser levels: plain gradient steps on
+    per-pixel values fix smooth errors very slowly, steps on coarse levels fix them at once."""
 
-    def __init__(self, start: Tensor, n_levels: int):
+    def __init__(self, start: Tensor, n_levels: int, m: Tensor, focal, principal_point):
         h, w = start.shape[-2:]
-        self.size = (h, w)
-        self.levels = [start.clone().requires_grad_(True)]
+        self.size, self.m, self.focal, self.principal_point = (h, w), m, focal, principal_point
+        self.parameters = [start.clone().requires_grad_(True)]
         for level in range(1, n_levels):
             shape = (max(1, h >> level), max(1, w >> level))
-            self.levels.append(torch.zeros(start.shape[0], *shape, dtype=start.dtype, device=start.device,
-                                           requires_grad=True))
+            self.parameters.append(torch.zeros(start.shape[0], *shape, dtype=start.dtype, device=start.device,
+                                               requires_grad=True))
 
-    def field(self) -> Tensor:
-        out = self.levels[0]
-        for coarse in self.levels[1:]:
+    def value(self) -> Tensor:
+        out = self.parameters[0]
+        for coarse in self.parameters[1:]:
             out = out + F.interpolate(coarse[:, None], size=self.size, mode="bilinear", align_corners=False)[:, 0]
         return out
+
+    def normals(self) -> Tensor:
+        return field_normals(self.value(), self.m, self.focal, self.principal_point)
 
 
 class PhotometricRefiner(nn.Module):

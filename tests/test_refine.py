@@ -5,6 +5,7 @@ import torch
 from scenes import sphere
 
 import sfs_torch
+from sfs_torch.integrability import field_normals
 from sfs_torch.lighting import natural_lightings, render_sh, rotate_sh
 from sfs_torch.metrics import lmse, normal_metrics
 from sfs_torch.refine import (
@@ -59,15 +60,41 @@ class TestRefinementLoss:
         normals, mask = normals[None].double(), mask[None]
         sh = natural_lightings(0.8)["grace_cathedral"][None].double()
         image = (render_sh(normals, sh).clamp(0, 1) * mask).double()
-        field = (0.3 * torch.randn(1, 10, 10, dtype=torch.float64)).requires_grad_(True)
+        start = torch.nn.functional.normalize(normals + 0.1 * torch.randn_like(normals), dim=1) * mask
+        start = start.requires_grad_(True)
         light = (sh + 0.01 * torch.randn_like(sh)).requires_grad_(True)
         weights = mask.double()
         rim = coarse_normals(mask).double() * rim_pixels(mask)
 
-        def total(f, l):
-            return refinement_loss(f, l, image, mask, normals, weights, rim).total
+        def total(n, l):
+            return refinement_loss(n, l, image, mask, normals, weights, rim).total
 
-        assert torch.autograd.gradcheck(total, (field, light), eps=1e-6, atol=1e-6)
+        assert torch.autograd.gradcheck(total, (start, light), eps=1e-6, atol=1e-6)
+
+    def test_gradcheck_through_a_surface(self):
+        normals, mask = sphere(10, 4.0)
+        normals, mask = normals[None].double(), mask[None]
+        sh = natural_lightings(0.8)["grace_cathedral"][None].double()
+        image = (render_sh(normals, sh).clamp(0, 1) * mask).double()
+        field = (0.3 * torch.randn(1, 10, 10, dtype=torch.float64)).requires_grad_(True)
+        rim = coarse_normals(mask).double() * rim_pixels(mask)
+
+        def total(f):
+            n = field_normals(f, mask[:, 0], 20.0, None)
+            return refinement_loss(n, sh, image, mask, normals, mask.double(), rim).total
+
+        assert torch.autograd.gradcheck(total, (field,), eps=1e-6, atol=1e-6)
+
+    def test_clipped_pixels_bound_the_shading_only(self):
+        normals, mask = sphere(16, 6.0)
+        normals, mask = normals[None], mask[None]
+        sh = natural_lightings(0.8)["grace_cathedral"][None]
+        shading = render_sh(normals, sh)
+        image = (2 * shading).clamp(0, 1) * mask  # bright: many pixels at 1
+        rim = coarse_normals(mask) * rim_pixels(mask)
+        cfg = RefineConfig(normal_weight=0.0, contour_weight=0.0, smoothness=0.0, lighting_weight=0.0)
+        exact = refinement_loss(normals, 2 * sh, image, mask, normals, mask.float(), rim, config=cfg)
+        assert float(exact.photometric[0]) < 1e-6  # rendering above 1 where the image is clipped costs nothing
 
     @pytest.mark.parametrize("focal", [None, 60.0])
     def test_truth_explains_the_image(self, focal):
@@ -75,26 +102,39 @@ class TestRefinementLoss:
         normals, mask = view.normals[None], view.mask[None]
         sh = natural_lightings(0.8)["grace_cathedral"][None]
         image = render_sh(normals, sh).clamp(0, 1) * mask
-        truth = refine_shape_and_lighting(image, mask, normals, sh, focal=focal,
-                                          config=RefineConfig(iterations=0, optimise_lighting=False))
+        cfg = RefineConfig(model="surface", iterations=0, optimise_lighting=False)
+        truth = refine_shape_and_lighting(image, mask, normals, sh, focal=focal, config=cfg)
         assert _error(truth.normals, normals, mask) < 2.0  # the start surface integrates the true normals
-        wrong = refine_shape_and_lighting(image, mask, normals, 1.3 * sh, focal=focal,
-                                          config=RefineConfig(iterations=0, optimise_lighting=False))
+        wrong = refine_shape_and_lighting(image, mask, normals, 1.3 * sh, focal=focal, config=cfg)
         assert float(truth.loss_before[0]) < 0.5 * float(wrong.loss_before[0])
 
 
 class TestRefineShapeAndLighting:
-    def test_known_lighting_recovers_the_shape(self, scene):
+    @pytest.mark.parametrize("model, bound", [("pixel", 3.0), ("surface", 1.5)])
+    def test_known_lighting_recovers_the_shape(self, scene, model, bound):
         normals, mask, sh, image, start, _ = scene
-        out = refine_shape_and_lighting(image, mask, start, sh, config=RefineConfig(optimise_lighting=False))
+        out = refine_shape_and_lighting(image, mask, start, sh, config=RefineConfig(model=model, optimise_lighting=False))
         assert _error(start, normals, mask) > 10.0
-        assert _error(out.normals, normals, mask) < 1.5
+        assert _error(out.normals, normals, mask) < bound
         assert torch.equal(out.lighting, sh)
         assert float(out.loss_after[0]) < float(out.loss_before[0])
+        assert (out.depth is None) == (model == "pixel")
+
+    def test_pixel_model_keeps_a_depth_discontinuity(self):
+        # two spheres, the smaller in front of the larger: one mask, a jump in depth
+        big, big_mask = sphere(48, 20.0)
+        small, small_mask = sphere(48, 9.0, centre=(6.0, 4.0))
+        normals = torch.where(small_mask, small, big)[None]
+        mask = (big_mask | small_mask)[None]
+        sh = natural_lightings(0.8)["campus_sunset"][None]
+        image = render_sh(normals, sh).clamp(0, 1) * mask
+        start = torch.nn.functional.normalize(normals + 0.15 * torch.randn(normals.shape, generator=torch.Generator().manual_seed(0)), dim=1) * mask
+        pixel = refine_shape_and_lighting(image, mask, start, sh, config=RefineConfig(model="pixel"))
+        assert _error(pixel.normals, normals, mask) < 0.5 * _error(start, normals, mask)
 
     def test_joint_refinement_lowers_normal_and_lighting_errors(self, scene):
         normals, mask, sh, image, start, start_sh = scene
-        out = refine_shape_and_lighting(image, mask, start, start_sh, config=RefineConfig(iterations=200))
+        out = refine_shape_and_lighting(image, mask, start, start_sh, config=RefineConfig(model="surface", iterations=200))
         assert _error(out.normals, normals, mask) < 0.8 * _error(start, normals, mask)
         assert float(lmse(out.lighting, sh)[0]) < 0.8 * float(lmse(start_sh, sh)[0])
 
@@ -105,21 +145,22 @@ class TestRefineShapeAndLighting:
         image = render_sh(normals, sh).clamp(0, 1) * mask
         start = coarse_normals(mask, focal=50.0)
         out = refine_shape_and_lighting(image, mask, start, sh, focal=50.0,
-                                        config=RefineConfig(optimise_lighting=False, iterations=100))
+                                        config=RefineConfig(model="surface", optimise_lighting=False, iterations=100))
         assert _error(out.normals, normals, mask) < 0.5 * _error(start, normals, mask)
         assert bool((out.depth[mask] > 0).all()) and float(out.depth[~mask].abs().max()) == 0.0
 
     def test_outputs_unit_inside_zero_outside(self, scene):
         _, mask, sh, image, start, start_sh = scene
-        out = refine_shape_and_lighting(image, mask, start, start_sh, config=RefineConfig(iterations=5))
+        out = refine_shape_and_lighting(image, mask, start, start_sh, config=RefineConfig(model="surface", iterations=5))
         m = mask[0, 0]
         assert torch.allclose(out.normals[0].norm(dim=0)[m], torch.ones(int(m.sum())), atol=1e-5)
         assert float(out.normals[0][:, ~m].abs().max()) == 0.0
         assert out.depth.shape == (1, 1, 48, 48) and float(out.depth[~mask].abs().max()) == 0.0
 
-    def test_batch_equals_single(self, scene):
+    @pytest.mark.parametrize("model", ["pixel", "surface"])
+    def test_batch_equals_single(self, scene, model):
         _, mask, sh, image, start, start_sh = scene
-        cfg = RefineConfig(iterations=10)
+        cfg = RefineConfig(model=model, iterations=10)
         two = refine_shape_and_lighting(torch.cat([image, image.flip(-1)]), torch.cat([mask, mask.flip(-1)]),
                                         torch.cat([start, start.flip(-1)]), torch.cat([start_sh, start_sh]), config=cfg)
         one = refine_shape_and_lighting(image, mask, start, start_sh, config=cfg)
@@ -138,7 +179,7 @@ class TestRefineShapeAndLighting:
     @pytest.mark.parametrize("bad, match", [
         ({"when": "sometimes"}, "refine.when"), ({"iterations": -1}, "refine.iterations"),
         ({"levels": 0}, "refine.levels"), ({"delta": 0.0}, "refine.delta"),
-        ({"normal_weight": -1.0}, "refine.normal_weight"),
+        ({"normal_weight": -1.0}, "refine.normal_weight"), ({"model": "mesh"}, "refine.model"),
     ])
     def test_bad_config(self, scene, bad, match):
         _, mask, sh, image, start, _ = scene
@@ -169,13 +210,16 @@ class TestPipeline:
         never = sfs_torch.estimate(image, mask, lighting=sh, config={**self.TINY, "refine": {"when": "never"}},
                                    progress=False)
         default = sfs_torch.estimate(image, mask, lighting=sh, config=self.TINY, progress=False)
-        assert never.depth is None and default.depth is not None
+        assert never.depth is None and default.depth is None  # the pixel model has no surface
         assert "photometric refinement" in default.timings
         assert _error(default.normals[None], normals[None], mask[None]) < _error(never.normals[None], normals[None], mask[None])
         assert torch.equal(default.lighting, sh)
         # an estimated lighting is left to the forest by default
         unknown = sfs_torch.estimate(image, mask, config=self.TINY, progress=False)
-        assert unknown.depth is None and "photometric refinement" not in unknown.timings
+        assert "photometric refinement" not in unknown.timings
+        surface = sfs_torch.estimate(image, mask, lighting=sh, config={**self.TINY, "refine": {"model": "surface"}},
+                                     progress=False)
+        assert surface.depth is not None and surface.depth.shape == (1, 64, 64)
 
     def test_bad_refine_option_fails_before_any_work(self, monkeypatch):
         normals, mask = sphere()
