@@ -117,9 +117,22 @@ def _write_outputs(out: Path, est: Estimate) -> None:
         io.write_image(out / "novel_view.png", render_novel_view(mesh, est.lighting.cpu()))
 
 
+def _device(name: str) -> torch.device:
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {name!r}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(
+            f"device={name} but torch {torch.__version__} sees no CUDA device here; run with device=cpu, or "
+            "install a CUDA build of torch (README)"
+        )
+    return device
+
+
 def run(cfg: DictConfig) -> Dict[str, float]:
     """Run the app on a composed config; returns the key numbers (also written as JSON)."""
-    device = torch.device(cfg.device)
+    device = _device(cfg.device)
     out = Path(cfg.out) if cfg.out else Path(HydraConfig.get().runtime.output_dir)
     pipeline_cfg = _pipeline_config(cfg)
     numbers: Dict[str, float] = {}

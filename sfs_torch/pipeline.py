@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 import time
+import warnings
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -39,8 +41,8 @@ from .camera import CameraConfig, centroid_rotation, rotate_normals_to_camera
 from .forest import VMF, ForestConfig, VMFForest, sample_vmf
 from .geometry_db import DatabaseConfig, GeometryDatabase, cache_dir, load_database
 from .integrability import IntegrabilityConfig, integrate_convex, integrate_normals
-from .lighting import render_sh, rotate_sh
-from .reflectance_map import ReflectanceMapConfig, estimate_lighting, refit_lighting
+from .lighting import render_sh, rotate_sh, sh_basis_vectors
+from .reflectance_map import ReflectanceMapConfig, estimate_lighting, hemisphere_directions, refit_lighting
 from .refine import RefineConfig, check_refine_config, refine_shape_and_lighting
 from .silhouette import silhouette_features
 from .texton import TextonConfig, texton_features
@@ -343,13 +345,14 @@ def estimate(
     """
     cfg = resolve_config(config)
     check_refine_config(cfg.refine)
-    focal = cfg.camera.focal if focal is None else focal
-    principal_point = cfg.camera.principal_point if principal_point is None else principal_point
+    focal = _check_focal(cfg.camera.focal if focal is None else focal)
+    principal_point = _check_principal_point(
+        cfg.camera.principal_point if principal_point is None else principal_point, focal
+    )
     integrate = cfg.integrate.method if integrate is None else integrate
     if integrate not in INTEGRATION_METHODS:
         raise ValueError(f"integrate must be one of {INTEGRATION_METHODS}, got {integrate!r}")
-    if focal is not None and not float(focal) > 0:
-        raise ValueError(f"focal must be a positive focal length in pixels, got {focal}")
+    _check_forest_config(cfg)
 
     image_t = _as_image_tensor(image)
     image_b, single = to_batch(image_t, "image", 3)
@@ -363,6 +366,10 @@ def estimate(
     image_b = image_b.float().contiguous()  # a numpy (H, W, 3) view gives the same sums as a tensor
     mask_b = check_mask(_as_mask_tensor(mask, image_b, single))
     check_same_size(image_b, "image", mask_b, "mask")
+    _warn_outside_assumptions(image_b, mask_b, principal_point)
+    known_lighting = None if lighting is None else _as_lighting(lighting, image_b.shape[0])
+    if known_lighting is not None:
+        _warn_lighting_scale(known_lighting, image_b, mask_b)
 
     timer = _Timer()
     batch = image_b.shape[0]
@@ -370,7 +377,7 @@ def estimate(
         if lighting is None:
             sh = estimate_lighting(image_b, mask_b, focal=focal, principal_point=principal_point, config=cfg.reflectance_map)
         else:
-            sh = _as_lighting(lighting, batch).to(image_b.device)
+            sh = known_lighting.to(image_b.device)
     with timer("database"):
         db = load_database(cfg.database, progress=progress)
     with timer("test features"):
@@ -468,10 +475,113 @@ def _solver_options(cfg: IntegrabilityConfig, method: str) -> Dict[str, Any]:
 
 
 def _as_lighting(lighting: Any, batch: int) -> Tensor:
-    sh = torch.as_tensor(lighting, dtype=torch.float32)
+    """A given lighting as ``(B, 3, 9)`` float32, rejected when it cannot be a physical one."""
+    try:
+        sh = torch.as_tensor(lighting, dtype=torch.float32)
+    except (TypeError, ValueError, RuntimeError):
+        raise TypeError(
+            f"lighting must be SH coefficients of shape (3, 9) or ({batch}, 3, 9), got {type(lighting).__name__} "
+            f"{lighting!r:.60}"
+        ) from None
     if sh.ndim == 2:
         sh = sh[None].expand(batch, -1, -1)
     if sh.ndim != 3 or sh.shape[1:] != (3, 9) or sh.shape[0] != batch:
         raise ValueError(f"lighting must have shape (3, 9) or ({batch}, 3, 9), got {tuple(sh.shape)}")
     check_finite(sh, "lighting")
+    # what the lighting renders on the visible hemisphere, per channel
+    shading = sh_basis_vectors(hemisphere_directions(400)) @ sh.transpose(1, 2)  # (B, 400, 3)
+    peak, low = shading.amax(1), shading.amin(1)
+    if bool((peak <= 0).any()):
+        raise ValueError(
+            f"lighting renders no light on the visible hemisphere (largest shading per channel "
+            f"{peak.tolist()}): a zero or negative lighting is not physical"
+        )
+    if bool((low < -NEGATIVE_LIGHT_TOLERANCE * peak).any()):
+        raise ValueError(
+            f"lighting renders strongly negative light on part of the visible hemisphere (shading from "
+            f"{low.min():.3g} to {peak.max():.3g}): not a physical lighting; check its coefficient order and "
+            "frame (docs/conventions.md)"
+        )
     return sh
+
+
+# a fitted SH lighting may ring slightly below zero; this share of its peak is allowed
+NEGATIVE_LIGHT_TOLERANCE = 0.25
+TINY_OBJECT_PIXELS = 64
+
+
+def _check_focal(focal: Any) -> Optional[float]:
+    if focal is None:
+        return None
+    try:
+        value = float(focal)
+    except (TypeError, ValueError):
+        raise ValueError(f"focal must be a positive focal length in pixels, got {focal!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"focal must be a positive focal length in pixels, got {focal!r}")
+    return value
+
+
+def _check_principal_point(principal_point: Any, focal: Optional[float]) -> Optional[tuple]:
+    if principal_point is None:
+        return None
+    try:
+        values = tuple(float(c) for c in principal_point)
+    except (TypeError, ValueError):
+        values = ()
+    if len(values) != 2 or not all(math.isfinite(v) for v in values):
+        raise ValueError(f"principal_point must be two finite numbers (cx, cy) in pixels, got {principal_point!r}")
+    if focal is None:
+        warnings.warn("principal_point is ignored without a focal length (the camera is orthographic)", stacklevel=3)
+    return values
+
+
+def _check_forest_config(cfg: PipelineConfig) -> None:
+    """Validate the forest's options before any training set is shaded."""
+    n_features = 3 * cfg.features.rgb + 3 * cfg.features.silhouette + 17 * cfg.features.texton
+    params = {k: v for k, v in asdict(cfg.forest).items() if k != "_target_"}
+    try:
+        VMFForest(**params)._validate_params(max(n_features, 1))
+    except ValueError as err:
+        raise ValueError(f"forest.{err}") from None
+
+
+def _warn_outside_assumptions(image: Tensor, mask: Tensor, principal_point: Optional[tuple]) -> None:
+    """Warn (not fail) for inputs the method runs on but was not designed for."""
+    height, width = mask.shape[-2:]
+    for b in range(mask.shape[0]):
+        m = mask[b, 0]
+        pixels = int(m.sum())
+        where = f" (batch element {b})" if mask.shape[0] > 1 else ""
+        if pixels < TINY_OBJECT_PIXELS:
+            warnings.warn(f"the object has only {pixels} pixels{where}: the features and the lighting estimate "
+                          "assume objects of hundreds of pixels or more", stacklevel=3)
+        if bool(m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any()):
+            warnings.warn(f"the object touches the image border{where}: the silhouette there is not its "
+                          "occluding contour, which the silhouette features and the lighting estimate assume",
+                          stacklevel=3)
+        colours = image[b].permute(1, 2, 0)[m]
+        if pixels > 1 and float(colours.std(0).max()) < 1e-4:
+            warnings.warn(f"the image is constant on the object{where}: there is no shading to read", stacklevel=3)
+        saturated = float((colours >= 1).any(1).float().mean())
+        if saturated > 0.5:
+            warnings.warn(f"{saturated:.0%} of the object's pixels are saturated{where}: their shading is lost",
+                          stacklevel=3)
+    if principal_point is not None:
+        cx, cy = principal_point
+        if not (-width <= cx <= 2 * width and -height <= cy <= 2 * height):
+            warnings.warn(f"principal_point {principal_point} lies far outside the {width}x{height} image",
+                          stacklevel=3)
+
+
+def _warn_lighting_scale(sh: Tensor, image: Tensor, mask: Tensor) -> None:
+    """Warn when a given lighting is far brighter than anything in the image (albedo forgotten?)."""
+    shading = sh_basis_vectors(hemisphere_directions(400)) @ sh.transpose(1, 2)  # (B, 400, 3)
+    for b in range(image.shape[0]):
+        brightest = float(torch.quantile(image[b].permute(1, 2, 0)[mask[b, 0]].max(1).values, 0.99))
+        peak = float(shading[b].max())
+        if brightest < 0.98 and peak > 4 * max(brightest, 1e-6):
+            warnings.warn(
+                f"the given lighting renders up to {peak:.3g} but the image's brightest pixels are {brightest:.3g}: "
+                "is its scale (albedo times intensity) right?", stacklevel=3,
+            )

@@ -186,7 +186,8 @@ def refit_lighting(image: Tensor, mask: Tensor, normals: Tensor) -> Tensor:
 def _match_statistics(sh: Tensor, pixel_dirs: Tensor, pixel_colours: Tensor) -> Tensor:
     """Affinely adjust ``sh`` per channel so its shading of the mapped pixels has the image's mean and std."""
     shading = sh_basis_vectors(pixel_dirs) @ sh.T  # (N, 3)
-    gain = pixel_colours.std(0) / shading.std(0).clamp_min(1e-8)
+    # population std: a one-pixel object gets gain 0, a constant (ambient) lighting, not NaN
+    gain = pixel_colours.std(0, unbiased=False) / shading.std(0, unbiased=False).clamp_min(1e-8)
     offset = pixel_colours.mean(0) - gain * shading.mean(0)
     matched = sh * gain[:, None]
     matched[:, 0] = matched[:, 0] + offset / sh_basis_vectors(pixel_dirs[:1])[0, 0]

@@ -3,6 +3,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 import torch
 from scenes import sphere
 
@@ -86,4 +87,17 @@ class TestCLI:
         result = run_cli([*TINY, "image=missing.png", "out=x"], tmp_path)
         assert result.returncode == 2
         assert "missing.png" in result.stderr + result.stdout
+        assert "Traceback" not in result.stderr
+
+    def test_bad_device_is_one_clear_line(self, tmp_path):
+        result = run_cli([*TINY, "device=foo", "out=x"], tmp_path)
+        assert result.returncode == 2
+        assert "device must be 'cpu', 'cuda' or 'cuda:N', got 'foo'" in result.stderr + result.stdout
+        assert "Traceback" not in result.stderr
+
+    @pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
+    def test_cuda_without_cuda_says_how_to_fall_back(self, tmp_path):
+        result = run_cli([*TINY, "device=cuda", "out=x"], tmp_path)
+        assert result.returncode == 2
+        assert "sees no CUDA device here; run with device=cpu" in result.stderr + result.stdout
         assert "Traceback" not in result.stderr

@@ -73,6 +73,7 @@ class TestEstimate:
         tilted = sfs_torch.estimate(image, mask, focal=60.0, lighting=sh, config=per_pixel, progress=False)
         assert not torch.allclose(tilted.normals, ortho.normals, atol=1e-3)
 
+    @pytest.mark.filterwarnings("ignore:the object touches the image border")
     def test_perspective_sphere_known_lighting(self):
         import trimesh
 
@@ -230,3 +231,84 @@ class TestConfig:
     def test_unknown_key_is_rejected(self):
         with pytest.raises(ValueError, match="n_treez"):
             resolve_config({"forest": {"n_treez": 3}})
+
+
+class TestInputValidation:
+    """Odd input gets one clear error naming the argument, or runs with a warning."""
+
+    @pytest.fixture()
+    def sphere_scene(self):
+        normals, mask = sphere()
+        sh = natural_lightings(0.7)["grace_cathedral"]
+        image = (render_sh(normals[None], sh[None])[0] * mask).clamp(0, 1)
+        return image, mask, sh
+
+    @pytest.fixture()
+    def no_database(self, monkeypatch):
+        monkeypatch.setattr("sfs_torch.pipeline.load_database", lambda *a, **k: pytest.fail("database loaded"))
+
+    @pytest.mark.parametrize("focal", ["abc", -3.0, float("nan"), float("inf")])
+    def test_bad_focal(self, sphere_scene, no_database, focal):
+        image, mask, _ = sphere_scene
+        with pytest.raises(ValueError, match="focal must be a positive focal length"):
+            sfs_torch.estimate(image, mask, focal=focal, config=TINY, progress=False)
+
+    @pytest.mark.parametrize("point", [(float("nan"), float("nan")), (3.0,), "centre", (1.0, 2.0, 3.0)])
+    def test_bad_principal_point(self, sphere_scene, no_database, point):
+        image, mask, _ = sphere_scene
+        with pytest.raises(ValueError, match="principal_point must be two finite numbers"):
+            sfs_torch.estimate(image, mask, focal=100.0, principal_point=point, config=TINY, progress=False)
+
+    def test_principal_point_without_focal_warns(self, sphere_scene):
+        image, mask, sh = sphere_scene
+        with pytest.warns(UserWarning, match="principal_point is ignored"):
+            sfs_torch.estimate(image, mask, principal_point=(30.0, 30.0), lighting=sh, config=TINY, progress=False)
+
+    def test_far_principal_point_warns(self, sphere_scene):
+        image, mask, sh = sphere_scene
+        with pytest.warns(UserWarning, match="far outside"):
+            sfs_torch.estimate(image, mask, focal=100.0, principal_point=(5000.0, 30.0), lighting=sh, config=TINY,
+                               progress=False)
+
+    def test_lighting_that_is_not_coefficients(self, sphere_scene, no_database):
+        image, mask, _ = sphere_scene
+        with pytest.raises(TypeError, match="lighting must be SH coefficients"):
+            sfs_torch.estimate(image, mask, lighting="foo", config=TINY, progress=False)
+
+    def test_impossible_lightings(self, sphere_scene, no_database):
+        image, mask, sh = sphere_scene
+        with pytest.raises(ValueError, match="renders no light"):
+            sfs_torch.estimate(image, mask, lighting=torch.zeros(3, 9), config=TINY, progress=False)
+        with pytest.raises(ValueError, match="renders no light"):
+            sfs_torch.estimate(image, mask, lighting=-sh, config=TINY, progress=False)
+        strong = sh.clone()
+        strong[:, 3] = 4 * strong[:, 0]  # a dipole far stronger than the constant term: negative on one side
+        with pytest.raises(ValueError, match="strongly negative"):
+            sfs_torch.estimate(image, mask, lighting=strong, config=TINY, progress=False)
+
+    def test_too_bright_lighting_warns(self, sphere_scene):
+        image, mask, sh = sphere_scene
+        with pytest.warns(UserWarning, match="is its scale"):
+            sfs_torch.estimate(image * 0.1, mask, lighting=sh, config=TINY, progress=False)
+
+    def test_bad_forest_option_fails_before_any_work(self, sphere_scene, no_database):
+        image, mask, _ = sphere_scene
+        with pytest.raises(ValueError, match="forest.n_trees"):
+            sfs_torch.estimate(image, mask, config={**TINY, "forest": {"n_trees": 0}}, progress=False)
+
+    def test_one_pixel_object(self):
+        mask = torch.zeros(1, 32, 32, dtype=torch.bool)
+        mask[0, 16, 16] = True
+        image = torch.full((3, 32, 32), 0.5) * mask
+        with pytest.warns(UserWarning, match="only 1 pixels"):
+            est = sfs_torch.estimate(image, mask, config=TINY, progress=False)
+        assert bool(torch.isfinite(est.lighting).all()) and bool(torch.isfinite(est.normals).all())
+        assert torch.allclose(est.normals[:, mask[0]].norm(dim=0), torch.ones(1), atol=1e-5)
+
+    def test_border_and_constant_images_warn(self, sphere_scene):
+        image, mask, sh = sphere_scene
+        shifted_mask = torch.roll(mask, 40, dims=-1)  # the sphere cut by the right border
+        with pytest.warns(UserWarning, match="touches the image border"):
+            sfs_torch.estimate(torch.roll(image, 40, dims=-1), shifted_mask, lighting=sh, config=TINY, progress=False)
+        with pytest.warns(UserWarning, match="constant on the object"):
+            sfs_torch.estimate(torch.full_like(image, 0.4) * mask, mask, lighting=sh, config=TINY, progress=False)
