@@ -23,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
+import os
 import time
 import warnings
 from contextlib import contextmanager
@@ -39,7 +40,7 @@ from torch import Tensor
 from ._checks import check_finite, check_mask, check_same_size, to_batch
 from .camera import CameraConfig, centroid_rotation, rotate_normals_to_camera
 from .forest import VMF, ForestConfig, VMFForest, sample_vmf
-from .geometry_db import DatabaseConfig, GeometryDatabase, cache_dir, load_database
+from .geometry_db import DatabaseConfig, GeometryDatabase, _sha256, cache_dir, load_database
 from .integrability import IntegrabilityConfig, integrate_convex, integrate_normals
 from .lighting import render_sh, rotate_sh, sh_basis_vectors
 from .reflectance_map import ReflectanceMapConfig, estimate_lighting, hemisphere_directions, refit_lighting
@@ -249,14 +250,7 @@ def _forest_key(sh: Tensor, cfg: PipelineConfig) -> str:
 def _trained_forest(sh: Tensor, db: GeometryDatabase, cfg: PipelineConfig, timer: _Timer) -> VMFForest:
     """Train (or fetch from the cache) the forest for one lighting."""
     path = cache_dir() / "forests" / f"{_forest_key(sh, cfg)}.safetensors"
-    forest: Optional[VMFForest] = None
-    if cfg.training.cache_forests and path.exists():
-        try:
-            forest = VMFForest.load(path).to(sh.device)
-            log.info("reusing the forest trained for this lighting: %s", path)
-            path.touch()  # the cache evicts the least recently used forests
-        except Exception as err:  # a corrupt cache entry is retrained, never trusted
-            log.warning("ignoring unreadable cached forest %s (%s)", path, err)
+    forest = _cached_forest(path, sh.device) if cfg.training.cache_forests else None
     if forest is None:
         with timer("shade database + features"):
             data = training_set(
@@ -267,10 +261,46 @@ def _trained_forest(sh: Tensor, db: GeometryDatabase, cfg: PipelineConfig, timer
             params = {k: v for k, v in asdict(cfg.forest).items() if k != "_target_"}
             forest = VMFForest(**params, device=sh.device).fit(data.features, data.normals)
         if cfg.training.cache_forests:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            forest.save(path)
+            _save_forest(forest, path)
             _evict_forests(path.parent, cfg.training.max_cached_forests)
     return forest
+
+
+def _checksum_path(path: Path) -> Path:
+    return path.with_suffix(".sha256")
+
+
+def _cached_forest(path: Path, device: torch.device) -> Optional[VMFForest]:
+    """The cached forest at ``path`` if it verifies; a corrupt entry is deleted, never trusted."""
+    if not path.exists():
+        return None
+    try:
+        if _checksum_path(path).read_text().strip() != _sha256(path):
+            raise ValueError("checksum mismatch")
+        forest = VMFForest.load(path)
+        if not (bool(torch.isfinite(forest.mean_).all()) and bool(torch.isfinite(forest.kappa_).all())):
+            raise ValueError("non-finite leaves")
+    except (OSError, ValueError, RuntimeError, KeyError) as err:
+        log.warning("deleting unusable cached forest %s (%s); training a new one", path, err)
+        path.unlink(missing_ok=True)
+        _checksum_path(path).unlink(missing_ok=True)
+        return None
+    log.info("reusing the forest trained for this lighting: %s", path)
+    path.touch()  # the cache evicts the least recently used forests
+    return forest.to(device)
+
+
+def _save_forest(forest: VMFForest, path: Path) -> None:
+    """Write the forest and its checksum atomically: data first, so a crash in between
+    leaves a mismatch (retrained), never a wrong pairing."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
+    forest.save(tmp)
+    digest = _sha256(tmp)
+    os.replace(tmp, path)
+    tmp_sum = tmp.with_suffix(".sha256tmp")
+    tmp_sum.write_text(digest)
+    os.replace(tmp_sum, _checksum_path(path))
 
 
 def _evict_forests(folder: Path, keep: int) -> None:
@@ -284,6 +314,7 @@ def _evict_forests(folder: Path, keep: int) -> None:
 
     for path in sorted(folder.glob("*.safetensors"), key=last_used, reverse=True)[keep:]:
         path.unlink(missing_ok=True)
+        _checksum_path(path).unlink(missing_ok=True)
 
 
 def _as_image_tensor(image: Any) -> Tensor:

@@ -1,3 +1,4 @@
+import hashlib
 import os
 import time
 
@@ -215,6 +216,34 @@ class TestForestCache:
         sfs_torch.estimate(image, mask, lighting=sh * 0.8, config=config, progress=False)
         kept = set(forests.glob("*.safetensors"))
         assert len(kept) == 2 and first_file in kept
+
+    def test_evicts_checksums_with_their_forests(self, scene, tmp_path, monkeypatch):
+        monkeypatch.setenv("SFS_TORCH_CACHE", str(tmp_path))
+        _, mask, sh, image = scene
+        config = dict(TINY, training={"max_cached_forests": 1})
+        for scale in (1.0, 0.9):
+            sfs_torch.estimate(image, mask, lighting=sh * scale, config=config, progress=False)
+        forests = tmp_path / "forests"
+        assert len(list(forests.glob("*.safetensors"))) == 1 and len(list(forests.glob("*.sha256"))) == 1
+
+    def test_corrupt_forest_is_retrained_not_trusted(self, scene, tmp_path, monkeypatch, caplog):
+        monkeypatch.setenv("SFS_TORCH_CACHE", str(tmp_path))
+        _, mask, sh, image = scene
+        first = sfs_torch.estimate(image, mask, lighting=sh, config=TINY, progress=False)
+        (path,) = (tmp_path / "forests").glob("*.safetensors")
+        data = bytearray(path.read_bytes())
+        middle = len(data) // 2
+        data[middle : middle + 4096] = os.urandom(4096)  # random bytes, size unchanged
+        path.write_bytes(bytes(data))
+        with caplog.at_level("WARNING", logger="sfs_torch.pipeline"):
+            again = sfs_torch.estimate(image, mask, lighting=sh, config=TINY, progress=False)
+        assert "checksum mismatch" in caplog.text
+        assert torch.equal(again.normals, first.normals)  # retrained: the same forest as before
+        assert path.with_suffix(".sha256").read_text() == hashlib.sha256(path.read_bytes()).hexdigest()
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="sfs_torch.pipeline"):
+            sfs_torch.estimate(image, mask, lighting=sh, config=TINY, progress=False)
+        assert "unusable" not in caplog.text  # the replacement verifies
 
     def test_bound_must_be_positive(self, scene):
         _, mask, sh, image = scene
