@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import shutil
 import sys
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, Optional
@@ -100,8 +103,11 @@ def _demo_inputs(cfg: DictConfig, device: torch.device) -> Dict[str, Any]:
     return {"image": image[0].to(device), "mask": mask[0].to(device), "normals": normals[0], "lighting": sh, "name": shape.name}
 
 
-def _write_outputs(out: Path, est: Estimate) -> None:
-    out.mkdir(parents=True, exist_ok=True)
+# written only by some runs: a rerun into the same folder without them removes them
+OPTIONAL_OUTPUTS = ("depth.npy", "mesh.ply", "novel_view.png")
+
+
+def _write_outputs(out: Path, est: Estimate, camera: DictConfig) -> None:
     normals = est.normals.cpu()
     io.write_normals_npy(out / "normals.npy", normals)
     io.write_normals_png(out / "normals.png", normals)
@@ -112,9 +118,18 @@ def _write_outputs(out: Path, est: Estimate) -> None:
     io.write_image(out / "confidence.png", (kappa[0] / scale).clamp(0, 1), srgb=False)
     if est.depth is not None:
         np.save(out / "depth.npy", est.depth.cpu()[0].numpy().astype("float32"))
-        mesh = depth_to_mesh(est.depth.cpu()[0], est.mask.cpu()[0])
+        mesh = depth_to_mesh(est.depth.cpu()[0], est.mask.cpu()[0], camera.focal, camera.principal_point)
         mesh.export(out / "mesh.ply")
         io.write_image(out / "novel_view.png", render_novel_view(mesh, est.lighting.cpu()))
+
+
+def _publish(staging: Path, out: Path) -> None:
+    """Move every finished file into ``out`` (atomic renames) and drop a previous run's extras."""
+    for name in OPTIONAL_OUTPUTS:
+        if not (staging / name).exists():
+            (out / name).unlink(missing_ok=True)
+    for path in sorted(staging.iterdir()):
+        os.replace(path, out / path.name)
 
 
 def _device(name: str) -> torch.device:
@@ -135,7 +150,6 @@ def run(cfg: DictConfig) -> Dict[str, float]:
     device = _device(cfg.device)
     out = Path(cfg.out) if cfg.out else Path(HydraConfig.get().runtime.output_dir)
     pipeline_cfg = _pipeline_config(cfg)
-    numbers: Dict[str, float] = {}
     if cfg.image is None:
         if cfg.mask is not None:
             raise ValueError("mask was given without image: pass image=PATH too (or neither for the demo)")
@@ -148,7 +162,25 @@ def run(cfg: DictConfig) -> Dict[str, float]:
         known = io.read_lighting(cfg.lighting) if cfg.lighting else None
         demo = None
     est = estimate(image, mask, lighting=known, config=pipeline_cfg)
-    _write_outputs(out, est)
+    # every file is written under a hidden staging folder first and renamed into place
+    # when all are complete: a killed run leaves no half-written file under a final name
+    out.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".sfs-torch-partial-", dir=out))
+    try:
+        _write_outputs(staging, est, cfg.camera)
+        numbers = _finish(cfg, staging, est, image, mask, demo)
+        _publish(staging, out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    for key, value in numbers.items():
+        log.info("%-32s %.4g", key, value)
+    log.info("outputs written to %s", out.resolve())
+    return numbers
+
+
+def _finish(cfg: DictConfig, out: Path, est: Estimate, image, mask, demo) -> Dict[str, float]:
+    """Write the key numbers (``metrics.json``) and the summary figure; return the numbers."""
+    numbers: Dict[str, float] = {}
     for stage, seconds in est.timings.items():
         numbers[f"time {stage} (s)"] = seconds
     title = f"sfs-torch: {cfg.image or 'demo ' + demo['name']}"
@@ -172,9 +204,6 @@ def run(cfg: DictConfig) -> Dict[str, float]:
         numbers=summary_numbers, title=title,
     )
     (out / "metrics.json").write_text(json.dumps(numbers, indent=2))
-    for key, value in numbers.items():
-        log.info("%-32s %.4g", key, value)
-    log.info("outputs written to %s", out.resolve())
     return numbers
 
 

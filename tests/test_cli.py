@@ -101,3 +101,44 @@ class TestCLI:
         assert result.returncode == 2
         assert "sees no CUDA device here; run with device=cpu" in result.stderr + result.stdout
         assert "Traceback" not in result.stderr
+
+    def test_rerun_removes_the_previous_runs_extras(self, tmp_path):
+        write_sphere(tmp_path)
+        out = tmp_path / "result"
+        first = run_cli([*TINY, "image=obj.png", "mask=obj_mask.png", f"out={out}", "integrate=l2"], tmp_path)
+        assert first.returncode == 0, first.stderr
+        assert (out / "depth.npy").is_file()
+        again = run_cli([*TINY, "image=obj.png", "mask=obj_mask.png", f"out={out}"], tmp_path)
+        assert again.returncode == 0, again.stderr
+        for name in ("depth.npy", "mesh.ply", "novel_view.png"):
+            assert not (out / name).exists(), name
+        assert (out / "normals.npy").is_file()
+        assert not list(out.glob(".sfs-torch-partial-*"))
+
+
+class TestAtomicOutputs:
+    def test_a_crash_while_writing_leaves_the_previous_outputs_whole(self, tmp_path, monkeypatch):
+        from hydra import compose, initialize_config_module
+
+        import sfs_torch.cli as cli
+
+        write_sphere(tmp_path)
+        monkeypatch.setenv("SFS_TORCH_CACHE", str(tmp_path / "cache"))
+        out = tmp_path / "result"
+        overrides = [*TINY, f"image={tmp_path / 'obj.png'}", f"mask={tmp_path / 'obj_mask.png'}", f"out={out}"]
+        with initialize_config_module(config_module="sfs_torch.conf", version_base="1.3"):
+            cli.run(compose(config_name="config", overrides=overrides))
+            before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+
+            def crash(*args, **kwargs):
+                raise RuntimeError("killed while writing the summary")
+
+            # a crash after the first files of the second run were written
+            monkeypatch.setattr(cli, "summary_figure", crash)
+            with pytest.raises(RuntimeError, match="killed"):
+                cli.run(compose(config_name="config", overrides=[*overrides, "integrate=l2"]))
+        after = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+        assert after == before  # nothing of the failed run under a final name, nothing lost
+        assert not any(p.is_dir() and p.name.startswith(".sfs-torch-partial-") for p in out.iterdir())
+        decoded = io.read_normals_npy(out / "normals.npy")
+        assert decoded.shape == (3, 48, 48)
