@@ -20,9 +20,10 @@ import json
 import logging
 import os
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import List, Optional, Sequence, Tuple
+from typing import Iterator, List, Optional, Sequence, Tuple
 
 import platformdirs
 import torch
@@ -298,18 +299,51 @@ def load_database(cfg: DatabaseConfig, *, progress: bool = True) -> GeometryData
     unreadable file is logged as a warning and rebuilt, never used.
     """
     _check_config(cfg)
-    data_path, meta_path = _cache_paths(cfg)
-    if data_path.exists() and meta_path.exists():
-        try:
-            return _load(cfg)
-        except Exception as err:  # anything wrong with the file means: rebuild it
-            log.warning("cached geometry database %s is unusable (%s): rebuilding it", data_path, err)
-    start = time.perf_counter()
-    db = build_database(cfg, progress=progress)
-    _save(db, cfg)
+    data_path, _ = _cache_paths(cfg)
+    db = _cached(cfg)
+    if db is not None:
+        return db
+    # Concurrent first runs share one build: the first holds the lock and builds, the
+    # others wait for it and then load what it wrote.
+    with _build_lock(data_path.with_suffix(".lock")):
+        db = _cached(cfg)
+        if db is not None:
+            return db
+        start = time.perf_counter()
+        db = build_database(cfg, progress=progress)
+        _save(db, cfg)
     log.info("built the geometry database (%d samples) in %.1f s: %s", db.normals.shape[0],
              time.perf_counter() - start, data_path)
     return db
+
+
+def _cached(cfg: DatabaseConfig) -> Optional[GeometryDatabase]:
+    """The verified cached database, or ``None`` when missing or unusable (logged)."""
+    data_path, meta_path = _cache_paths(cfg)
+    if not (data_path.exists() and meta_path.exists()):
+        return None
+    try:
+        return _load(cfg)
+    except Exception as err:  # anything wrong with the file means: rebuild it
+        log.warning("cached geometry database %s is unusable (%s): rebuilding it", data_path, err)
+        return None
+
+
+@contextmanager
+def _build_lock(path: Path) -> Iterator[None]:
+    """An exclusive advisory lock on ``path`` (POSIX ``flock``; elsewhere no lock)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # Windows: concurrent first runs may build twice, each safely
+        yield
+        return
+    with open(path, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def main(argv: Optional[Sequence[str]] = None) -> None:

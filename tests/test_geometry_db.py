@@ -1,5 +1,8 @@
 import json
 import logging
+import os
+import subprocess
+import sys
 from dataclasses import replace
 
 import pytest
@@ -117,6 +120,22 @@ class TestLoadDatabase:
         for a, b, c in zip(_fields(tiny_db), _fields(first), _fields(cached)):
             assert torch.equal(a, b) and torch.equal(a, c) and a.dtype == c.dtype
         assert cached.shape_names == tiny_db.shape_names
+
+    def test_concurrent_first_runs_build_once(self, tmp_path):
+        script = (
+            "import logging, sys; logging.basicConfig(level=logging.INFO, stream=sys.stdout)\n"
+            "from sfs_torch.geometry_db import DatabaseConfig, load_database\n"
+            "cfg = DatabaseConfig(collection='blobby', n_shapes=6, n_views=3, resolution=64, n_eval_shapes=2)\n"
+            "print('samples', load_database(cfg, progress=False).normals.shape[0])\n"
+        )
+        env = {**os.environ, "SFS_TORCH_CACHE": str(tmp_path)}
+        runs = [subprocess.Popen([sys.executable, "-c", script], env=env, stdout=subprocess.PIPE,
+                                 stderr=subprocess.STDOUT, text=True) for _ in range(2)]
+        outputs = [run.communicate(timeout=300)[0] for run in runs]
+        assert all(run.returncode == 0 for run in runs), outputs
+        assert sum("built the geometry database" in out for out in outputs) == 1, outputs
+        counts = {line for out in outputs for line in out.splitlines() if line.startswith("samples")}
+        assert len(counts) == 1  # both got the same database
 
     def test_second_load_reads_cache(self, monkeypatch):
         load_database(TINY, progress=False)
