@@ -44,7 +44,7 @@ from .geometry_db import DatabaseConfig, GeometryDatabase, _sha256, cache_dir, l
 from .integrability import IntegrabilityConfig, integrate_convex, integrate_normals
 from .lighting import render_sh, rotate_sh, sh_basis_vectors
 from .reflectance_map import ReflectanceMapConfig, estimate_lighting, hemisphere_directions, refit_lighting
-from .refine import RefineConfig, check_refine_config, refine_shape_and_lighting
+from .refine import RefineConfig, check_refine_config, photometric_residual, refine_shape_and_lighting
 from .silhouette import silhouette_features
 from .texton import TextonConfig, texton_features
 
@@ -430,6 +430,7 @@ def estimate(
         m = mask_b[b, 0]
         rows = feats[b].permute(1, 2, 0)[m]
         centroid = centroid_rotation(mask_b[b : b + 1], focal, principal_point)[0] if focal is not None else None
+        best = None  # (residual, lighting, normals, confidence, forest) of the best round so far
         for round_ in range(rounds + 1):
             if round_ > 0:
                 with timer("lighting refinement"):
@@ -445,6 +446,14 @@ def estimate(
             confidence[b, 0][m] = pred.kappa.to(confidence.dtype)
             if centroid is not None:
                 normals[b : b + 1] = _to_camera(normals[b : b + 1], centroid, focal, principal_point, cfg.camera.normal_rotation)
+            if rounds == 0:
+                continue
+            residual = float(photometric_residual(normals[b : b + 1], sh[b : b + 1], image_b[b : b + 1], mask_b[b : b + 1])[0])
+            if best is not None and residual >= best[0]:
+                # a refit whose round explains the image worse than the round before is dropped
+                _, sh[b], normals[b], confidence[b], forest = best
+                break
+            best = (residual, sh[b].clone(), normals[b].clone(), confidence[b].clone(), forest)
         if integrate == "conv":
             leaves = forest.predict_leaves(rows)
             generator = torch.Generator(device=rows.device).manual_seed(cfg.training.seed)

@@ -49,7 +49,7 @@ from .lighting import render_sh
 from .natural_lighting import LightingPrior, lighting_prior_energy, load_lighting_prior
 from .silhouette import coarse_normals
 
-__all__ = ["RefineConfig", "check_refine_config", "RefinementLoss", "Refinement", "refinement_loss", "refine_shape_and_lighting",
+__all__ = ["RefineConfig", "check_refine_config", "photometric_residual", "RefinementLoss", "Refinement", "refinement_loss", "refine_shape_and_lighting",
            "PhotometricRefiner", "rim_pixels"]
 
 log = logging.getLogger(__name__)
@@ -165,6 +165,31 @@ def _masked_mean(x: Tensor, m: Tensor) -> Tensor:
     return (x * mf).flatten(1).sum(1) / (mf.flatten(1).sum(1) * x.shape[1]).clamp_min(1.0)
 
 
+def photometric_residual(
+    normals: Tensor, lighting: Tensor, image: Tensor, mask: Tensor, *, delta: float = RefineConfig.delta,
+    dark_level: float = RefineConfig.dark_level,
+) -> Tensor:
+    """How well normals and a lighting explain an image: the refinement's photometric term.
+
+    Mean Charbonnier penalty of ``(render_sh(normals, lighting) - image) / mean(image)``
+    over the mask, one-sided at pixels clipped at 0 (at or below ``dark_level``) or at 1.
+
+    Args:
+        normals: :math:`(B, 3, H, W)`; lighting: :math:`(B, 3, 9)`; image:
+            :math:`(B, 3, H, W)`; mask: :math:`(B, 1, H, W)` bool.
+
+    Returns:
+        :math:`(B,)`, differentiable in ``normals`` and ``lighting``.
+    """
+    scale = _masked_mean(image, mask).clamp_min(1e-6)[:, None, None, None]
+    residual = render_sh(normals, lighting) - image
+    # clipped pixels only bound the shading: an attached shadow may render below 0 and a
+    # highlight above 1
+    residual = torch.where(image <= dark_level, residual.clamp_min(0),
+                           torch.where(image >= 1, residual.clamp_max(0), residual)) / scale
+    return _masked_mean(torch.sqrt(residual * residual + delta * delta) - delta, mask)
+
+
 def refinement_loss(
     normals: Tensor,
     lighting: Tensor,
@@ -199,14 +224,7 @@ def refinement_loss(
         :class:`RefinementLoss`.
     """
     cfg = config or RefineConfig()
-    scale = _masked_mean(image, mask).clamp_min(1e-6)[:, None, None, None]
-    residual = render_sh(normals, lighting) - image
-    # clipped pixels only bound the shading: an attached shadow may render below 0 and a
-    # highlight above 1
-    residual = torch.where(image <= cfg.dark_level, residual.clamp_min(0),
-                           torch.where(image >= 1, residual.clamp_max(0), residual)) / scale
-    delta = cfg.delta
-    photometric = _masked_mean(torch.sqrt(residual * residual + delta * delta) - delta, mask)
+    photometric = photometric_residual(normals, lighting, image, mask, delta=cfg.delta, dark_level=cfg.dark_level)
     normal_prior = _masked_mean(confidence * (1 - (normals * prior_normals).sum(1, keepdim=True)), mask)
     rim = rim_normals.abs().sum(1, keepdim=True) > 0
     contour = _masked_mean(1 - (normals * rim_normals).sum(1, keepdim=True), rim)

@@ -187,6 +187,15 @@ class TestLightingRefinement:
         assert torch.allclose(refined.lighting, expected, atol=1e-5)
         assert not torch.allclose(refined.lighting, plain.lighting, atol=1e-3)
 
+    def test_a_refit_that_explains_the_image_worse_is_dropped(self, scene, monkeypatch):
+        _, mask, _, image = scene
+        plain = sfs_torch.estimate(image, mask, config=dict(TINY, reflectance_map={"refine_rounds": 0}), progress=False)
+        # a refit gone wrong: three times too bright
+        monkeypatch.setattr("sfs_torch.pipeline.refit_lighting", lambda im, m, n: 3 * refit_lighting(im, m, n))
+        guarded = sfs_torch.estimate(image, mask, config=TINY, progress=False)
+        assert torch.equal(guarded.lighting, plain.lighting)
+        assert torch.equal(guarded.normals, plain.normals) and torch.equal(guarded.confidence, plain.confidence)
+
     def test_given_lighting_is_not_refined(self, scene):
         _, mask, sh, image = scene
         config = dict(TINY, reflectance_map={"refine_rounds": 2})
