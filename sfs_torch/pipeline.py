@@ -434,7 +434,8 @@ def estimate(
         for round_ in range(rounds + 1):
             if round_ > 0:
                 with timer("lighting refinement"):
-                    sh[b] = refit_lighting(image_b[b : b + 1], mask_b[b : b + 1], normals[b : b + 1])[0]
+                    sh[b] = refit_lighting(image_b[b : b + 1], mask_b[b : b + 1], normals[b : b + 1],
+                                           valid=cfg.reflectance_map.valid_refit)[0]
             # Perspective: train in the object's own orthographic frame (the lighting
             # seen from its centroid), then rotate the predictions to the camera frame.
             local_sh = sh[b] if centroid is None else rotate_sh(sh[b], centroid.T.to(sh.dtype))

@@ -52,6 +52,8 @@ class ReflectanceMapConfig:
             estimated: this many times, the lighting is refitted to the image from the
             forest's predicted normals (:func:`refit_lighting`) and a new forest is
             trained for it. 0 is the paper's method; each round costs one more forest.
+        valid_refit: constrain those refits to a physically valid lighting
+            (:func:`refit_lighting`'s ``valid``).
     """
 
     profile: str = "sphere"
@@ -61,6 +63,7 @@ class ReflectanceMapConfig:
     max_pixels: int = 20000
     match_statistics: bool = True
     refine_rounds: int = 1
+    valid_refit: bool = True
 
 
 def hemisphere_directions(n: int, *, device=None, dtype=torch.float32) -> Tensor:
@@ -157,14 +160,15 @@ def estimate_lighting(
     return sh
 
 
-def refit_lighting(image: Tensor, mask: Tensor, normals: Tensor) -> Tensor:
+def refit_lighting(image: Tensor, mask: Tensor, normals: Tensor, *, valid: bool = True) -> Tensor:
     """SH lighting that best shades ``normals`` into ``image`` (least squares, Lambertian).
 
     Pixels clipped at 0 or 1 in any channel are left out, since their shading is not
     what the image shows; if every object pixel is clipped, all are used. The fit is
-    constrained to a physically valid lighting: its shading is non-negative on the
-    visible hemisphere (``n_z >= 0``; :func:`sfs_torch.lighting.fit_sh_vectors`), which
-    an unconstrained fit to few or one-sided pixels can violate.
+    constrained to a physically valid lighting (``valid=True``): its shading is
+    non-negative on the visible hemisphere (``n_z >= 0``;
+    :func:`sfs_torch.lighting.fit_sh_vectors`), which an unconstrained fit to few or
+    one-sided pixels can violate.
 
     Args:
         image: linear RGB, :math:`(B, 3, H, W)`.
@@ -179,7 +183,7 @@ def refit_lighting(image: Tensor, mask: Tensor, normals: Tensor) -> Tensor:
     check_same_size(image, "image", mask, "mask")
     unclipped = mask & ((image > 0) & (image < 1)).all(1, keepdim=True)
     usable = unclipped.flatten(1).any(1)[:, None, None, None]
-    hemisphere = hemisphere_directions(VALIDITY_DIRECTIONS, device=image.device, dtype=torch.float64)
+    hemisphere = hemisphere_directions(VALIDITY_DIRECTIONS, device=image.device, dtype=torch.float64) if valid else None
     return fit_sh(normals, image, torch.where(usable, unclipped, mask), nonnegative=hemisphere)
 
 

@@ -191,7 +191,7 @@ class TestLightingRefinement:
         _, mask, _, image = scene
         plain = sfs_torch.estimate(image, mask, config=dict(TINY, reflectance_map={"refine_rounds": 0}), progress=False)
         # a refit gone wrong: three times too bright
-        monkeypatch.setattr("sfs_torch.pipeline.refit_lighting", lambda im, m, n: 3 * refit_lighting(im, m, n))
+        monkeypatch.setattr("sfs_torch.pipeline.refit_lighting", lambda im, m, n, valid: 3 * refit_lighting(im, m, n))
         guarded = sfs_torch.estimate(image, mask, config=TINY, progress=False)
         assert torch.equal(guarded.lighting, plain.lighting)
         assert torch.equal(guarded.normals, plain.normals) and torch.equal(guarded.confidence, plain.confidence)
