@@ -217,5 +217,21 @@ def _main(cfg: DictConfig) -> None:
         sys.exit(2)
 
 
+def _check_out_argument(args: list) -> None:
+    """Fail with one line when ``out=`` cannot be written, before Hydra sets up its log file there."""
+    for arg in args:
+        if not arg.startswith("out=") or arg[4:] in ("", "null"):
+            continue
+        path = Path(arg[4:])
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryFile(dir=path):
+                pass
+        except OSError as err:
+            print(f"sfs-torch: cannot write to out={path}: {err.strerror or err}", file=sys.stderr)
+            sys.exit(2)
+
+
 def main() -> None:
+    _check_out_argument(sys.argv[1:])
     _main()

@@ -89,6 +89,13 @@ class TestCLI:
         assert "missing.png" in result.stderr + result.stdout
         assert "Traceback" not in result.stderr
 
+    def test_unwritable_out_is_one_clear_line(self, tmp_path):
+        (tmp_path / "a_file").write_text("not a folder")
+        result = run_cli([*TINY, f"out={tmp_path / 'a_file' / 'sub'}"], tmp_path)
+        assert result.returncode == 2
+        assert "cannot write to out=" in result.stderr
+        assert "Traceback" not in result.stderr
+
     def test_bad_device_is_one_clear_line(self, tmp_path):
         result = run_cli([*TINY, "device=foo", "out=x"], tmp_path)
         assert result.returncode == 2
