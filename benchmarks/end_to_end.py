@@ -34,12 +34,11 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import torch  # noqa: E402
 
 import sfs_torch  # noqa: E402
-from sfs_torch.geometry_db import DatabaseConfig, evaluation_shapes, load_database  # noqa: E402
+from held_out import LIGHTINGS, held_out_scenes  # noqa: E402
+from sfs_torch.geometry_db import DatabaseConfig, load_database  # noqa: E402
 from sfs_torch.integrability import integrate_normals  # noqa: E402
-from sfs_torch.lighting import natural_lightings, render_sh  # noqa: E402
 from sfs_torch.metrics import lmse, normal_metrics  # noqa: E402
 from sfs_torch.refine import RefineConfig, refine_shape_and_lighting  # noqa: E402
-from sfs_torch.rendering import random_view_rotations, render_normals  # noqa: E402
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
 
 
@@ -56,71 +55,59 @@ def main() -> None:
     args = parser.parse_args()
     n_shapes = args.shapes or (3 if args.quick else 10)
     resolution = args.resolution or (128 if args.quick else 256)
-    order = ["grace_cathedral", "campus_sunset", "uffizi_gallery", "eucalyptus_grove", "st_peters_basilica",
-             "galileos_tomb", "funston_beach_sunset"]
-    light_names = order[: args.lights or (2 if args.quick else 3)]
+    n_lights = args.lights or (2 if args.quick else 3)
+    light_names = LIGHTINGS[:n_lights]
     # the forest alone; the refinement is applied below to the same output
     config = {"database": {"collection": args.collection}, "training": {"cache_forests": False},
               "refine": {"when": "never"}}
-    db_cfg = DatabaseConfig(collection=args.collection)
-    load_database(db_cfg)
-    shapes = evaluation_shapes(db_cfg)
-    # spread the picks over the evaluation split's groups
-    step = max(1, len(shapes) // n_shapes)
-    shapes = shapes[::step][:n_shapes]
-    lights = natural_lightings(0.8)
-    generator = torch.Generator().manual_seed(0)
+    load_database(DatabaseConfig(collection=args.collection))
     rows = []
-    for shape in shapes:
-        view = render_normals(shape.mesh, random_view_rotations(1, generator)[0], resolution, focal=args.focal)
-        normals, mask = view.normals[None], view.mask[None]
-        for name in light_names:
-            sh = lights[name][None]
-            image = ((render_sh(normals, sh) + 0.001 * torch.randn(normals.shape, generator=generator)).clamp(0, 1)) * mask
-            start = time.perf_counter()
-            est = sfs_torch.estimate(image, mask, focal=args.focal, config=config, progress=False)
-            seconds = time.perf_counter() - start
-            start = time.perf_counter()
-            known = sfs_torch.estimate(image, mask, focal=args.focal, lighting=sh, config=config, progress=False)
-            known_seconds = time.perf_counter() - start
+    for scene in held_out_scenes(n_shapes, n_lights, resolution, args.focal, args.collection):
+        image, mask, normals, sh, name = scene.image, scene.mask, scene.normals, scene.lighting, scene.lighting_name
+        start = time.perf_counter()
+        est = sfs_torch.estimate(image, mask, focal=args.focal, config=config, progress=False)
+        seconds = time.perf_counter() - start
+        start = time.perf_counter()
+        known = sfs_torch.estimate(image, mask, focal=args.focal, lighting=sh, config=config, progress=False)
+        known_seconds = time.perf_counter() - start
 
-            def refined(e, optimise_lighting):
-                begin = time.perf_counter()
-                out = refine_shape_and_lighting(image, mask, e.normals, e.lighting, confidence=e.confidence,
-                                                focal=args.focal, config=RefineConfig(optimise_lighting=optimise_lighting))
-                return out, time.perf_counter() - begin
+        def refined(e, optimise_lighting):
+            begin = time.perf_counter()
+            out = refine_shape_and_lighting(image, mask, e.normals, e.lighting, confidence=e.confidence,
+                                            focal=args.focal, config=RefineConfig(optimise_lighting=optimise_lighting))
+            return out, time.perf_counter() - begin
 
-            est_ref, est_ref_seconds = refined(est, True)
-            known_ref, known_ref_seconds = refined(known, False)
+        est_ref, est_ref_seconds = refined(est, True)
+        known_ref, known_ref_seconds = refined(known, False)
 
-            def error(n):
-                return float(normal_metrics(n, normals, mask).median[0])
+        def error(n):
+            return float(normal_metrics(n, normals, mask).median[0])
 
-            rows.append({
-                "shape": shape.name, "lighting": name, "pixels": int(mask.sum()),
-                "silhouette_only": error(coarse_normals(mask, focal=args.focal)),
-                "unknown_light": error(est.normals), "unknown_light_refined": error(est_ref.normals),
-                "known_light": error(known.normals), "known_light_refined": error(known_ref.normals),
-                "lmse": float(lmse(est.lighting, sh)[0]), "lmse_refined": float(lmse(est_ref.lighting, sh)[0]),
-                "seconds": seconds, "seconds_refined": seconds + est_ref_seconds,
-                "known_seconds": known_seconds, "known_seconds_refined": known_seconds + known_ref_seconds,
-                "stages": {**{k: v for k, v in est.timings.items() if k != "database"},
-                           "photometric refinement": est_ref_seconds},
-            })
-            if args.focal is not None:
-                # Table 3: the same perspective image estimated as if it were orthographic
-                ortho = sfs_torch.estimate(image, mask, config=config, progress=False)
-                rows[-1]["unknown_light_as_orthographic"] = float(normal_metrics(ortho.normals, normals, mask).median[0])
-            if args.integrate:
-                for method in ("l2", "l1"):
-                    surface = integrate_normals(est.normals, mask, method=method, weights=est.confidence, focal=args.focal)
-                    rows[-1][f"unknown_light_{method}"] = float(normal_metrics(surface.normals, normals, mask).median[0])
-                conv = sfs_torch.estimate(image, mask, focal=args.focal, integrate="conv", config=config, progress=False)
-                rows[-1]["unknown_light_conv"] = float(normal_metrics(conv.normals, normals, mask).median[0])
-            r = rows[-1]
-            print(f"{r['shape']:<34} {name:<16} {r['silhouette_only']:6.1f} {r['unknown_light']:6.1f} "
-                  f"{r['unknown_light_refined']:6.1f} {r['known_light']:6.1f} {r['known_light_refined']:6.1f} "
-                  f"{r['lmse']:8.5f} {r['lmse_refined']:8.5f} {seconds:6.2f}s", flush=True)
+        rows.append({
+            "shape": scene.shape, "lighting": name, "pixels": int(mask.sum()),
+            "silhouette_only": error(coarse_normals(mask, focal=args.focal)),
+            "unknown_light": error(est.normals), "unknown_light_refined": error(est_ref.normals),
+            "known_light": error(known.normals), "known_light_refined": error(known_ref.normals),
+            "lmse": float(lmse(est.lighting, sh)[0]), "lmse_refined": float(lmse(est_ref.lighting, sh)[0]),
+            "seconds": seconds, "seconds_refined": seconds + est_ref_seconds,
+            "known_seconds": known_seconds, "known_seconds_refined": known_seconds + known_ref_seconds,
+            "stages": {**{k: v for k, v in est.timings.items() if k != "database"},
+                       "photometric refinement": est_ref_seconds},
+        })
+        if args.focal is not None:
+            # Table 3: the same perspective image estimated as if it were orthographic
+            ortho = sfs_torch.estimate(image, mask, config=config, progress=False)
+            rows[-1]["unknown_light_as_orthographic"] = float(normal_metrics(ortho.normals, normals, mask).median[0])
+        if args.integrate:
+            for method in ("l2", "l1"):
+                surface = integrate_normals(est.normals, mask, method=method, weights=est.confidence, focal=args.focal)
+                rows[-1][f"unknown_light_{method}"] = float(normal_metrics(surface.normals, normals, mask).median[0])
+            conv = sfs_torch.estimate(image, mask, focal=args.focal, integrate="conv", config=config, progress=False)
+            rows[-1]["unknown_light_conv"] = float(normal_metrics(conv.normals, normals, mask).median[0])
+        r = rows[-1]
+        print(f"{r['shape']:<34} {name:<16} {r['silhouette_only']:6.1f} {r['unknown_light']:6.1f} "
+              f"{r['unknown_light_refined']:6.1f} {r['known_light']:6.1f} {r['known_light_refined']:6.1f} "
+              f"{r['lmse']:8.5f} {r['lmse_refined']:8.5f} {seconds:6.2f}s", flush=True)
 
     def med(key):
         return statistics.median(r[key] for r in rows)

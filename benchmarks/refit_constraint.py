@@ -17,16 +17,9 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-import torch  # noqa: E402
-
 import sfs_torch  # noqa: E402
-from sfs_torch.geometry_db import DatabaseConfig, evaluation_shapes  # noqa: E402
-from sfs_torch.lighting import natural_lightings, render_sh  # noqa: E402
+from held_out import held_out_scenes  # noqa: E402
 from sfs_torch.metrics import normal_metrics  # noqa: E402
-from sfs_torch.rendering import random_view_rotations, render_normals  # noqa: E402
-
-ORDER = ["grace_cathedral", "campus_sunset", "uffizi_gallery", "eucalyptus_grove", "st_peters_basilica",
-         "galileos_tomb", "funston_beach_sunset"]
 
 
 def main() -> None:
@@ -36,25 +29,18 @@ def main() -> None:
     parser.add_argument("--focal", type=float, default=None)
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "refit_constraint.json")
     args = parser.parse_args()
-    shapes = evaluation_shapes(DatabaseConfig())
-    shapes = shapes[:: max(1, len(shapes) // args.shapes)][: args.shapes]
-    lights = natural_lightings(0.8)
-    generator = torch.Generator().manual_seed(0)  # the draws of end_to_end.py, in its order
     rows = []
-    for shape in shapes:
-        view = render_normals(shape.mesh, random_view_rotations(1, generator)[0], 256, focal=args.focal)
-        normals, mask = view.normals[None], view.mask[None]
-        for name in ORDER[: args.lights]:
-            sh = lights[name][None]
-            image = (render_sh(normals, sh) + 0.001 * torch.randn(normals.shape, generator=generator)).clamp(0, 1) * mask
-            row = {"shape": shape.name, "lighting": name}
-            for valid in (True, False):
-                config = {"training": {"cache_forests": False}, "refine": {"when": "never"},
-                          "reflectance_map": {"valid_refit": valid}}
-                est = sfs_torch.estimate(image, mask, focal=args.focal, config=config, progress=False)
-                row["valid" if valid else "unconstrained"] = float(normal_metrics(est.normals, normals, mask).median[0])
-            rows.append(row)
-            print(f"{shape.name:<34} {name:<20} {row['valid']:6.2f} {row['unconstrained']:6.2f}", flush=True)
+    for scene in held_out_scenes(args.shapes, args.lights, 256, args.focal):
+        row = {"shape": scene.shape, "lighting": scene.lighting_name}
+        for valid in (True, False):
+            config = {"training": {"cache_forests": False}, "refine": {"when": "never"},
+                      "reflectance_map": {"valid_refit": valid}}
+            est = sfs_torch.estimate(scene.image, scene.mask, focal=args.focal, config=config, progress=False)
+            error = normal_metrics(est.normals, scene.normals, scene.mask).median[0]
+            row["valid" if valid else "unconstrained"] = float(error)
+        rows.append(row)
+        print(f"{scene.shape:<34} {scene.lighting_name:<20} {row['valid']:6.2f} {row['unconstrained']:6.2f}",
+              flush=True)
     summary = {key: {"median": statistics.median(r[key] for r in rows), "mean": statistics.mean(r[key] for r in rows)}
                for key in ("valid", "unconstrained")}
     print(f"\n{'refit':<16}{'median':>10}{'mean':>10}   ({len(rows)} images, focal {args.focal})")
