@@ -43,10 +43,16 @@ from .forest import VMF, ForestConfig, VMFForest, sample_vmf
 from .geometry_db import DatabaseConfig, GeometryDatabase, _sha256, cache_dir, load_database
 from .integrability import IntegrabilityConfig, integrate_convex, integrate_normals
 from .lighting import render_sh, rotate_sh, sh_basis_vectors
-from .reflectance_map import ReflectanceMapConfig, estimate_lighting, hemisphere_directions, refit_lighting
+from .reflectance_map import (
+    VALIDITY_DIRECTIONS,
+    ReflectanceMapConfig,
+    estimate_lighting,
+    hemisphere_directions,
+    refit_lighting,
+)
 from .refine import RefineConfig, check_refine_config, photometric_residual, refine_shape_and_lighting
 from .silhouette import silhouette_features
-from .texton import TextonConfig, texton_features
+from .texton import N_TEXTON_FILTERS, TextonConfig, texton_features
 
 __all__ = ["FeatureConfig", "TrainingConfig", "PipelineConfig", "Estimate", "estimate", "training_set", "pixel_features"]
 
@@ -258,12 +264,16 @@ def _trained_forest(sh: Tensor, db: GeometryDatabase, cfg: PipelineConfig, timer
                 cfg.training.brightness_jitter, cfg.training.colour_jitter,
             )
         with timer("train forest"):
-            params = {k: v for k, v in asdict(cfg.forest).items() if k != "_target_"}
-            forest = VMFForest(**params, device=sh.device).fit(data.features, data.normals)
+            forest = VMFForest(**_forest_params(cfg), device=sh.device).fit(data.features, data.normals)
         if cfg.training.cache_forests:
             _save_forest(forest, path)
             _evict_forests(path.parent, cfg.training.max_cached_forests)
     return forest
+
+
+def _forest_params(cfg: PipelineConfig) -> Dict[str, Any]:
+    """The forest's constructor arguments from the config (its ``_target_`` left out)."""
+    return {k: v for k, v in asdict(cfg.forest).items() if k != "_target_"}
 
 
 def _checksum_path(path: Path) -> Path:
@@ -400,7 +410,9 @@ def estimate(
     _warn_outside_assumptions(image_b, mask_b, principal_point)
     known_lighting = None if lighting is None else _as_lighting(lighting, image_b.shape[0])
     if known_lighting is not None:
-        _warn_lighting_scale(known_lighting, image_b, mask_b)
+        shading = _hemisphere_shading(known_lighting)
+        _check_physical_lighting(shading)
+        _warn_lighting_scale(shading, image_b, mask_b)
 
     timer = _Timer()
     batch = image_b.shape[0]
@@ -516,7 +528,7 @@ def _solver_options(cfg: IntegrabilityConfig, method: str) -> Dict[str, Any]:
 
 
 def _as_lighting(lighting: Any, batch: int) -> Tensor:
-    """A given lighting as ``(B, 3, 9)`` float32, rejected when it cannot be a physical one."""
+    """A given lighting as ``(B, 3, 9)`` float32 (shape, type and finiteness checked)."""
     try:
         sh = torch.as_tensor(lighting, dtype=torch.float32)
     except (TypeError, ValueError, RuntimeError):
@@ -529,8 +541,17 @@ def _as_lighting(lighting: Any, batch: int) -> Tensor:
     if sh.ndim != 3 or sh.shape[1:] != (3, 9) or sh.shape[0] != batch:
         raise ValueError(f"lighting must have shape (3, 9) or ({batch}, 3, 9), got {tuple(sh.shape)}")
     check_finite(sh, "lighting")
-    # what the lighting renders on the visible hemisphere, per channel
-    shading = sh_basis_vectors(hemisphere_directions(400)) @ sh.transpose(1, 2)  # (B, 400, 3)
+    return sh
+
+
+def _hemisphere_shading(sh: Tensor) -> Tensor:
+    """What lightings ``(B, 3, 9)`` render on the visible hemisphere: ``(B, M, 3)``."""
+    directions = hemisphere_directions(VALIDITY_DIRECTIONS, device=sh.device, dtype=sh.dtype)
+    return sh_basis_vectors(directions) @ sh.transpose(1, 2)
+
+
+def _check_physical_lighting(shading: Tensor) -> None:
+    """Reject a given lighting (its :func:`_hemisphere_shading`) that cannot be a physical one."""
     peak, low = shading.amax(1), shading.amin(1)
     if bool((peak <= 0).any()):
         raise ValueError(
@@ -543,7 +564,6 @@ def _as_lighting(lighting: Any, batch: int) -> Tensor:
             f"{low.min():.3g} to {peak.max():.3g}): not a physical lighting; check its coefficient order and "
             "frame (docs/conventions.md)"
         )
-    return sh
 
 
 # a fitted SH lighting may ring slightly below zero; this share of its peak is allowed
@@ -579,10 +599,9 @@ def _check_principal_point(principal_point: Any, focal: Optional[float]) -> Opti
 
 def _check_forest_config(cfg: PipelineConfig) -> None:
     """Validate the forest's options before any training set is shaded."""
-    n_features = 3 * cfg.features.rgb + 3 * cfg.features.silhouette + 17 * cfg.features.texton
-    params = {k: v for k, v in asdict(cfg.forest).items() if k != "_target_"}
+    n_features = 3 * cfg.features.rgb + 3 * cfg.features.silhouette + N_TEXTON_FILTERS * cfg.features.texton
     try:
-        VMFForest(**params)._validate_params(max(n_features, 1))
+        VMFForest(**_forest_params(cfg))._validate_params(max(n_features, 1))
     except ValueError as err:
         raise ValueError(f"forest.{err}") from None
 
@@ -615,9 +634,9 @@ def _warn_outside_assumptions(image: Tensor, mask: Tensor, principal_point: Opti
                           stacklevel=3)
 
 
-def _warn_lighting_scale(sh: Tensor, image: Tensor, mask: Tensor) -> None:
-    """Warn when a given lighting is far brighter than anything in the image (albedo forgotten?)."""
-    shading = sh_basis_vectors(hemisphere_directions(400)) @ sh.transpose(1, 2)  # (B, 400, 3)
+def _warn_lighting_scale(shading: Tensor, image: Tensor, mask: Tensor) -> None:
+    """Warn when a given lighting (its :func:`_hemisphere_shading`) is far brighter than
+    anything in the image (albedo forgotten?)."""
     for b in range(image.shape[0]):
         brightest = float(torch.quantile(image[b].permute(1, 2, 0)[mask[b, 0]].max(1).values, 0.99))
         peak = float(shading[b].max())
