@@ -44,7 +44,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ._checks import check_finite, check_mask, check_same_size, check_shape
-from .integrability import field_normals, integrate_normals
+from .integrability import _dx, _dy, _edge_masks, field_normals, integrate_normals
 from .lighting import render_sh
 from .natural_lighting import LightingPrior, lighting_prior_energy, load_lighting_prior
 from .silhouette import coarse_normals
@@ -228,10 +228,10 @@ def refinement_loss(
     normal_prior = _masked_mean(confidence * (1 - (normals * prior_normals).sum(1, keepdim=True)), mask)
     rim = rim_normals.abs().sum(1, keepdim=True) > 0
     contour = _masked_mean(1 - (normals * rim_normals).sum(1, keepdim=True), rim)
-    mf = mask.to(normals.dtype)
-    dx = (normals[..., :, 1:] - normals[..., :, :-1]).square().sum(1, keepdim=True) * mf[..., :, 1:] * mf[..., :, :-1]
-    dy = (normals[..., 1:, :] - normals[..., :-1, :]).square().sum(1, keepdim=True) * mf[..., 1:, :] * mf[..., :-1, :]
-    smooth = (dx.flatten(1).sum(1) + dy.flatten(1).sum(1)) / mf.flatten(1).sum(1).clamp_min(1.0)
+    # neighbour differences on the pairs of mask pixels the integrator also uses
+    ex, ey = _edge_masks(mask)
+    pairs = _dx(normals).square().sum(1, keepdim=True) * ex + _dy(normals).square().sum(1, keepdim=True) * ey
+    smooth = pairs.flatten(1).sum(1) / mask.flatten(1).sum(1).clamp_min(1).to(normals.dtype)
     prior = lighting_prior if lighting_prior is not None else load_lighting_prior(device=lighting.device)
     light = lighting_prior_energy(lighting, prior.to(lighting.device, lighting.dtype))
     total = (photometric + cfg.normal_weight * normal_prior + cfg.contour_weight * contour
