@@ -1,15 +1,16 @@
 """End-to-end accuracy and speed of sfs_torch.estimate on held-out shapes.
 
-Every shape comes from the EVALUATION side of the database's shape split (never
-trained on), rendered from a random view under R&H's natural light probes with noise
-sigma 0.001 (the paper's setting). For each image it reports the median angular error
+The scenes are ``sfs_torch.datasets``' test side: shapes from the evaluation side of the
+database's shape split (never trained on) that no option was tuned on, each rendered
+from a random view under R&H's natural light probes with noise sigma 0.001 (the paper's
+setting). For each image it reports the median angular error
 of: the silhouette-only coarse normal (Eq. 10), the full method in unknown lighting,
 and the full method with the true lighting given, each without and with the
 photometric refinement (:mod:`sfs_torch.refine`, applied to the same forest output, so
 the two columns differ by that stage alone); plus the lighting lMSE before and after
 the refinement and the per-stage time of one call of each kind (database cached).
 
-    python benchmarks/end_to_end.py            # 10 shapes x 3 lightings, 256 px
+    python benchmarks/end_to_end.py            # 10 shapes (all of the test side) x 3 lightings, 256 px
     python benchmarks/end_to_end.py --shapes 6 --lights 5   # 6 shapes x 5 lightings
     python benchmarks/end_to_end.py --quick    # 3 shapes x 2 lightings, 128 px
     python benchmarks/end_to_end.py --focal 300 --out benchmarks/results/end_to_end_persp.json
@@ -34,7 +35,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import torch  # noqa: E402
 
 import sfs_torch  # noqa: E402
-from held_out import LIGHTINGS, held_out_scenes  # noqa: E402
+from sfs_torch.datasets import evaluation_lightings, scene_shapes, synthetic_scenes  # noqa: E402
 from sfs_torch.geometry_db import DatabaseConfig, load_database  # noqa: E402
 from sfs_torch.integrability import integrate_normals  # noqa: E402
 from sfs_torch.metrics import lmse, normal_metrics  # noqa: E402
@@ -56,13 +57,14 @@ def main() -> None:
     n_shapes = args.shapes or (3 if args.quick else 10)
     resolution = args.resolution or (128 if args.quick else 256)
     n_lights = args.lights or (2 if args.quick else 3)
-    light_names = LIGHTINGS[:n_lights]
+    lights = evaluation_lightings(n_lights)
     # the forest alone; the refinement is applied below to the same output
     config = {"database": {"collection": args.collection}, "training": {"cache_forests": False},
               "refine": {"when": "never"}}
     load_database(DatabaseConfig(collection=args.collection))
     rows = []
-    for scene in held_out_scenes(n_shapes, n_lights, resolution, args.focal, args.collection):
+    shapes = scene_shapes(n_shapes, "test", DatabaseConfig(collection=args.collection))
+    for scene in synthetic_scenes(shapes, lights, resolution=resolution, focal=args.focal):
         image, mask, normals, sh, name = scene.image, scene.mask, scene.normals, scene.lighting, scene.lighting_name
         start = time.perf_counter()
         est = sfs_torch.estimate(image, mask, focal=args.focal, config=config, progress=False)
@@ -115,7 +117,7 @@ def main() -> None:
     stages = {k: statistics.median(r["stages"].get(k, 0.0) for r in rows) for k in rows[0]["stages"]}
     summary = {
         "images": len(rows), "resolution": resolution, "collection": args.collection, "focal": args.focal,
-        "lightings": light_names,
+        "lightings": [name for name, _ in lights],
         "median_of_medians_deg": {key: med(key) for key in (
             "silhouette_only", "unknown_light", "unknown_light_refined", "known_light", "known_light_refined")},
         "median_lmse": med("lmse"), "median_lmse_refined": med("lmse_refined"),

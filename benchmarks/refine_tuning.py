@@ -1,10 +1,11 @@
 """The photometric refinement on the TUNING side: validation shapes, Poly Haven lightings.
 
 The refinement's options (``sfs_torch.refine.RefineConfig``) were chosen on these images
-only: the odd-indexed evaluation shapes of the database split (``benchmarks/end_to_end.py``
-reports on the even-indexed ones) under the eight CC0 Poly Haven environments of
-``sfs_torch.natural_lighting`` seen by randomly oriented cameras (never R&H's probes),
-256 px like the benchmark, noise 0.001. For each image: the forest in unknown and in known lighting, and
+only: ``sfs_torch.datasets``' validation side (the odd-indexed evaluation shapes of the
+database split; the benchmarks report on the even-indexed ones) under the eight CC0 Poly
+Haven environments of ``sfs_torch.natural_lighting`` seen by randomly oriented cameras
+(never R&H's probes), 256 px like the benchmark, noise 0.001; each shape gets its own
+lightings. For each image: the forest in unknown and in known lighting, and
 the refinement of each (``when=always`` / ``when=known``) for every variant of the
 options given (the forests are shared by the variants).
 
@@ -21,28 +22,10 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-import torch  # noqa: E402
-
 import sfs_torch  # noqa: E402
-from sfs_torch.geometry_db import DatabaseConfig, evaluation_shapes  # noqa: E402
-from sfs_torch.lighting import render_sh, render_sphere, rotate_sh  # noqa: E402
+from sfs_torch.datasets import scene_shapes, synthetic_scenes, validation_lightings  # noqa: E402
 from sfs_torch.metrics import lmse, normal_metrics  # noqa: E402
-from sfs_torch.natural_lighting import environment_maps, random_camera_rotations  # noqa: E402
 from sfs_torch.refine import RefineConfig, refine_shape_and_lighting  # noqa: E402
-from sfs_torch.rendering import random_view_rotations, render_normals  # noqa: E402
-
-
-def tuning_lightings(n: int, generator: torch.Generator) -> list:
-    """Poly Haven lightings under random camera orientations, scaled so that the 95th
-    percentile of a lit sphere is 0.9 (a well exposed image)."""
-    env = environment_maps()
-    rotations = random_camera_rotations(n, generator).float()
-    out = []
-    for i in range(n):
-        sh = rotate_sh(env.sh[i % len(env.names)], rotations[i])
-        sphere = render_sphere(sh[None], 64)[0]
-        out.append((f"{env.names[i % len(env.names)]}_{i}", sh * 0.9 / torch.quantile(sphere[sphere > 0], 0.95)))
-    return out
 
 
 def main() -> None:
@@ -55,33 +38,28 @@ def main() -> None:
     args = parser.parse_args()
     variants = [json.loads(v) for v in args.variants]
     config = {"training": {"cache_forests": False}, "refine": {"when": "never"}}
-    generator = torch.Generator().manual_seed(0)
-    shapes = evaluation_shapes(DatabaseConfig())[1::2][: args.shapes]
-    lights = tuning_lightings(args.shapes * args.lights_per_shape, generator)
+    shapes = scene_shapes(args.shapes, "validation")
+    lights = validation_lightings(args.shapes * args.lights_per_shape)
     rows = []
-    for k, shape in enumerate(shapes):
-        view = render_normals(shape.mesh, random_view_rotations(1, generator)[0], args.resolution)
-        normals, mask = view.normals[None], view.mask[None]
-        for name, sh in lights[k * args.lights_per_shape : (k + 1) * args.lights_per_shape]:
-            sh = sh[None]
-            image = (render_sh(normals, sh) + 0.001 * torch.randn(normals.shape, generator=generator)).clamp(0, 1) * mask
-            est = sfs_torch.estimate(image, mask, config=config, progress=False)
-            known = sfs_torch.estimate(image, mask, lighting=sh, config=config, progress=False)
+    for scene in synthetic_scenes(shapes, lights, resolution=args.resolution, lights_per_shape=args.lights_per_shape):
+        image, mask, normals, sh, name = scene.image, scene.mask, scene.normals, scene.lighting, scene.lighting_name
+        est = sfs_torch.estimate(image, mask, config=config, progress=False)
+        known = sfs_torch.estimate(image, mask, lighting=sh, config=config, progress=False)
 
-            def error(n):
-                return float(normal_metrics(n, normals, mask).median[0])
+        def error(n):
+            return float(normal_metrics(n, normals, mask).median[0])
 
-            row = {"shape": shape.name, "lighting": name, "unknown": error(est.normals), "known": error(known.normals),
-                   "lmse": float(lmse(est.lighting, sh)[0])}
-            for i, options in enumerate(variants):
-                est_ref = refine_shape_and_lighting(image, mask, est.normals, est.lighting, confidence=est.confidence,
-                                                    config=RefineConfig(**options))
-                known_ref = refine_shape_and_lighting(image, mask, known.normals, sh, confidence=known.confidence,
-                                                      config=RefineConfig(**{**options, "optimise_lighting": False}))
-                row.update({f"unknown_refined_{i}": error(est_ref.normals), f"known_refined_{i}": error(known_ref.normals),
-                            f"lmse_refined_{i}": float(lmse(est_ref.lighting, sh)[0])})
-            rows.append(row)
-            print(" ".join(f"{v:.4f}" if isinstance(v, float) else f"{v:<28}" for v in rows[-1].values()), flush=True)
+        row = {"shape": scene.shape, "lighting": name, "unknown": error(est.normals), "known": error(known.normals),
+               "lmse": float(lmse(est.lighting, sh)[0])}
+        for i, options in enumerate(variants):
+            est_ref = refine_shape_and_lighting(image, mask, est.normals, est.lighting, confidence=est.confidence,
+                                                config=RefineConfig(**options))
+            known_ref = refine_shape_and_lighting(image, mask, known.normals, sh, confidence=known.confidence,
+                                                  config=RefineConfig(**{**options, "optimise_lighting": False}))
+            row.update({f"unknown_refined_{i}": error(est_ref.normals), f"known_refined_{i}": error(known_ref.normals),
+                        f"lmse_refined_{i}": float(lmse(est_ref.lighting, sh)[0])})
+        rows.append(row)
+        print(" ".join(f"{v:.4f}" if isinstance(v, float) else f"{v:<28}" for v in rows[-1].values()), flush=True)
     keys = [k for k in rows[0] if k not in ("shape", "lighting")]
     summary = {key: statistics.median(r[key] for r in rows) for key in keys}
     print(f"\nmedian over {len(rows)} images; variants: {dict(enumerate(variants))}")

@@ -18,7 +18,7 @@ from pathlib import Path
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import sfs_torch  # noqa: E402
-from held_out import held_out_scenes  # noqa: E402
+from sfs_torch.datasets import evaluation_lightings, scene_shapes, synthetic_scenes  # noqa: E402
 from sfs_torch.metrics import normal_metrics  # noqa: E402
 
 
@@ -30,7 +30,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "refit_constraint.json")
     args = parser.parse_args()
     rows = []
-    for scene in held_out_scenes(args.shapes, args.lights, 256, args.focal):
+    for scene in synthetic_scenes(scene_shapes(args.shapes, "test"), evaluation_lightings(args.lights), focal=args.focal):
         row = {"shape": scene.shape, "lighting": scene.lighting_name}
         for valid in (True, False):
             config = {"training": {"cache_forests": False}, "refine": {"when": "never"},

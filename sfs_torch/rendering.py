@@ -37,11 +37,14 @@ class NormalRender:
         mask: :math:`(1, H, W)` bool, pixels whose ray hits the mesh.
         depth: :math:`(1, H, W)` float32 distance from the camera centre along the view
             axis (``-z``), in mesh units; 0 outside the mask.
+        points: :math:`(3, H, W)` float64 hit points in the mesh's own (world) frame, 0
+            outside the mask: where :mod:`sfs_torch.image_formation` casts shadow rays from.
     """
 
     normals: Tensor
     mask: Tensor
     depth: Tensor
+    points: Tensor
 
 
 def camera_distance(resolution: int, focal: float, scale: float) -> float:
@@ -123,6 +126,7 @@ def render_normals(
 
     normals = np.zeros((n_pix, 3), np.float64)
     depth = np.zeros(n_pix, np.float64)
+    points = np.zeros((n_pix, 3), np.float64)
     hit = np.zeros(n_pix, bool)
     if len(index_ray):
         tri = np.asarray(mesh.faces)[index_tri]
@@ -138,11 +142,13 @@ def render_normals(
         good = length[:, 0] > 1e-12  # opposite vertex normals can cancel on razor-thin parts
         normals[index_ray[good]] = cam_normal[good] / length[good]
         depth[index_ray[good]] = distance - cam_point[good, 2]
+        points[index_ray[good]] = locations[good]
         hit[index_ray[good]] = True
     return NormalRender(
         normals=torch.from_numpy(normals.T.reshape(3, resolution, resolution).astype(np.float32)),
         mask=torch.from_numpy(hit.reshape(1, resolution, resolution)),
         depth=torch.from_numpy(depth.reshape(1, resolution, resolution).astype(np.float32)),
+        points=torch.from_numpy(np.ascontiguousarray(points.T.reshape(3, resolution, resolution))),
     )
 
 

@@ -1,0 +1,128 @@
+from dataclasses import replace
+
+import pytest
+import torch
+import trimesh
+
+from sfs_torch.datasets import (
+    DEGRADATIONS,
+    FormationConfig,
+    evaluation_lightings,
+    form_image,
+    scene_shapes,
+    synthetic_scenes,
+    validation_lightings,
+    view_visibility,
+)
+from sfs_torch.geometry_db import DatabaseConfig, evaluation_shapes
+from sfs_torch.lighting import render_sh
+from sfs_torch.natural_lighting import normalise_lighting
+from sfs_torch.rendering import render_normals
+from sfs_torch.shapes import Shape, normalize_mesh
+
+LIGHT = evaluation_lightings(1)
+
+
+def _shapes():
+    sphere = normalize_mesh(trimesh.creation.icosphere(subdivisions=4))
+    # a cup: a concave inside that cast shadows darken
+    cup = trimesh.creation.annulus(r_min=0.6, r_max=1.0, height=1.2)
+    bottom = trimesh.creation.cylinder(radius=1.0, height=0.2)
+    bottom.apply_translation((0, 0, -0.5))
+    return [Shape("sphere", sphere), Shape("cup", normalize_mesh(trimesh.util.concatenate([cup, bottom])))]
+
+
+def _scenes(formation, shapes=None, **kwargs):
+    return list(synthetic_scenes(shapes or _shapes(), LIGHT, resolution=48, formation=formation, **kwargs))
+
+
+class TestFormationConfig:
+    @pytest.mark.parametrize("field, value", [("specular", -0.1), ("noise", float("nan")), ("directions", 0),
+                                              ("bits", 0), ("exposure_stops", "1")])
+    def test_bad_values(self, field, value):
+        with pytest.raises(ValueError, match=f"FormationConfig.{field}"):
+            FormationConfig(**{field: value})
+
+    def test_all_combines_every_degradation(self):
+        combined = DEGRADATIONS["all"]
+        for name, single in DEGRADATIONS.items():
+            for field in FormationConfig.__dataclass_fields__:
+                if getattr(single, field) != getattr(DEGRADATIONS["exact"], field) and name != "all":
+                    assert getattr(combined, field) == getattr(single, field), (name, field)
+
+
+class TestSyntheticScenes:
+    def test_exact_is_the_paper_setting(self):
+        for scene in _scenes(DEGRADATIONS["exact"]):
+            expected = (render_sh(scene.normals, scene.source_lighting).clamp(0, 1) * scene.mask)
+            m = scene.mask.expand_as(scene.image)
+            assert (scene.image - expected)[m].std() == pytest.approx(0.001, rel=0.1)
+            assert torch.equal(scene.lighting, scene.source_lighting)
+
+    def test_same_views_for_every_formation(self):
+        a, b = _scenes(DEGRADATIONS["exact"]), _scenes(DEGRADATIONS["all"])
+        assert [s.name for s in a] == [s.name for s in b]
+        for x, y in zip(a, b):
+            assert torch.equal(x.normals, y.normals) and torch.equal(x.mask, y.mask)
+        again = _scenes(DEGRADATIONS["all"])
+        assert all(torch.equal(x.image, y.image) for x, y in zip(b, again))
+
+    def test_shadows_darken_only_the_concave_shape(self):
+        exact, shadowed = _scenes(replace(DEGRADATIONS["exact"], noise=0.0)), _scenes(DEGRADATIONS["shadows"])
+        assert float(shadowed[0].image.sum() / exact[0].image.sum()) == pytest.approx(1.0, abs=0.03)  # convex
+        # looking down into the cup: its floor sees the sky through the opening only
+        cup = _shapes()[1].mesh
+        view = render_normals(cup, torch.eye(3, dtype=torch.float64), 48)
+        config = replace(DEGRADATIONS["shadows"], noise=0.0)
+        visibility = view_visibility(view, cup, torch.eye(3), config)
+        sh = LIGHT[0][1][None]
+        args = (view.normals[None], view.mask[None], sh)
+        plain = form_image(*args, replace(config, shadows=False), torch.Generator())
+        dark = form_image(*args, config, torch.Generator(), visibility=visibility)
+        floor = (slice(None), slice(None), slice(22, 26), slice(22, 26))
+        assert float(dark[floor].sum()) < 0.6 * float(plain[floor].sum())
+        assert float(dark.sum()) < float(plain.sum())
+
+    def test_exposure_moves_the_known_lighting_not_the_normals(self):
+        exact, exposed = _scenes(DEGRADATIONS["exact"]), _scenes(DEGRADATIONS["exposure"])
+        for s, t in zip(exact, exposed):
+            gain = t.image.sum((2, 3)) / s.image.sum((2, 3))  # per channel
+            assert not torch.allclose(gain, torch.ones_like(gain), atol=0.02)
+            assert torch.allclose(t.lighting / s.lighting, gain[..., None].expand(-1, -1, 9), rtol=0.02)
+            assert torch.allclose(normalise_lighting(t.source_lighting), normalise_lighting(s.source_lighting))
+
+    def test_sensor_is_8_bit_srgb(self):
+        from sfs_torch.io import linear_to_srgb
+
+        for scene in _scenes(DEGRADATIONS["sensor"]):
+            codes = linear_to_srgb(scene.image) * 255
+            assert torch.allclose(codes, codes.round(), atol=1e-3)
+
+    def test_specular_highlight_brightens_the_sphere(self):
+        exact, shiny = _scenes(DEGRADATIONS["exact"]), _scenes(DEGRADATIONS["specular"])
+        lift = shiny[0].image - exact[0].image
+        assert float(lift.max()) > 0.05 and float(lift.min()) > -0.01
+
+    def test_lights_per_shape(self):
+        lights = validation_lightings(4)
+        scenes = list(synthetic_scenes(_shapes(), lights, resolution=32, lights_per_shape=2))
+        assert [s.lighting_name for s in scenes] == [name for name, _ in lights]
+
+
+class TestSides:
+    def test_validation_lightings_are_not_rh(self):
+        names = [name for name, _ in validation_lightings(8)]
+        assert not set(names) & {name for name, _ in evaluation_lightings(7)}
+        assert len(set(n.rsplit("_", 1)[0] for n in names)) == 8
+
+    def test_test_and_validation_shapes_are_disjoint(self):
+        cfg = DatabaseConfig(collection="blobby", n_shapes=3, n_views=2, resolution=48, samples_per_view=40,
+                             n_eval_shapes=4, seed=0)
+        every = [s.name for s in evaluation_shapes(cfg)]
+        test = [s.name for s in scene_shapes(2, "test", cfg)]
+        validation = [s.name for s in scene_shapes(2, "validation", cfg)]
+        assert test == every[0::2] and validation == every[1::2]
+
+    def test_bad_side(self):
+        with pytest.raises(ValueError, match="side must be"):
+            scene_shapes(1, "train")

@@ -1,0 +1,135 @@
+import math
+
+import pytest
+import torch
+import trimesh
+
+from sfs_torch.image_formation import (
+    blinn_phong,
+    dominant_light,
+    expose,
+    poisson_gaussian_noise,
+    quantise_srgb,
+    sh_radiance,
+    shade_environment,
+    shadow_visibility,
+    sphere_directions,
+)
+from sfs_torch.io import linear_to_srgb
+from sfs_torch.lighting import natural_lightings, render_sh, sh_basis_vectors
+
+
+def _random_normals(n, seed=0):
+    v = torch.randn(n, 3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    return v / v.norm(dim=1, keepdim=True)
+
+
+class TestSphereDirections:
+    def test_uniform_radiance_shades_to_one(self):
+        # (1 / pi) * integral of max(0, n . w) over the sphere is 1 for any normal
+        d = sphere_directions(400)
+        assert torch.allclose(d.norm(dim=1), torch.ones(400, dtype=torch.float64))
+        shading = shade_environment(_random_normals(50), d, torch.ones(400, 3, dtype=torch.float64))
+        assert (shading - 1).abs().max() < 0.01
+
+    def test_bad_count(self):
+        with pytest.raises(ValueError, match="n must be a positive integer"):
+            sphere_directions(0)
+
+
+class TestSHRadiance:
+    @pytest.mark.parametrize("name", ["grace_cathedral", "uffizi_gallery", "campus_sunset"])
+    def test_non_negative_and_shades_like_render_sh(self, name):
+        sh = natural_lightings(0.8)[name].double()
+        d = sphere_directions(400)
+        radiance = sh_radiance(d, sh)
+        assert (radiance >= 0).all()
+        n = _random_normals(200)
+        expected = render_sh(n.T[None, :, :, None], sh[None])[0, :, :, 0].T
+        got = shade_environment(n, d, radiance)
+        # the clipped 9-term radiance alone would be up to ~20 % too bright on these probes;
+        # what is left is the 9-term model's own error (bands > 2 through the clamped cosine)
+        assert (got - expected).abs().max() < 0.03 * expected.max()
+
+    def test_reproduces_the_coefficients(self):
+        sh = natural_lightings(1.0)["grace_cathedral"].double()
+        d = sphere_directions(400)
+        radiance = sh_radiance(d, sh)
+        lambert = torch.tensor([1.0, 2 / 3, 2 / 3, 2 / 3, 0.25, 0.25, 0.25, 0.25, 0.25], dtype=torch.float64)
+        projected = (4 * math.pi / 400) * (sh_basis_vectors(d).T @ radiance).T * lambert
+        assert torch.allclose(projected, sh, atol=1e-3 * float(sh.abs().max()))
+
+
+def _wall_on_floor():
+    floor = trimesh.creation.box(extents=(4.0, 0.1, 4.0))
+    floor.apply_translation((0, -0.05, 0))
+    wall = trimesh.creation.box(extents=(0.2, 0.5, 4.0))
+    wall.apply_translation((0.1, 0.25, 0))
+    return trimesh.util.concatenate([floor, wall])
+
+
+class TestShadowVisibility:
+    def test_a_corner_sees_less_sky_and_is_darker(self):
+        mesh = _wall_on_floor()
+        points = torch.tensor([[-0.05, 0.0, 0.0], [-1.9, 0.0, 0.0]], dtype=torch.float64)  # by the wall, far off
+        up = torch.tensor([[0.0, 1.0, 0.0]] * 2, dtype=torch.float64)
+        d = sphere_directions(400)
+        visible = shadow_visibility(mesh, points, up, d, torch.eye(3))
+        above = (d[:, 1] > 0).sum()
+        assert visible[1].sum() > 0.85 * above  # far from the wall: nearly the whole hemisphere
+        assert visible[0].sum() < 0.65 * above  # in the corner: the wall hides about half
+        assert not visible[:, d[:, 1] < 0].any()  # never below the tangent plane
+        sky = torch.ones(400, 3, dtype=torch.float64)
+        shading = shade_environment(up, d, sky, visible)
+        assert shading[0, 0] < 0.8 * shading[1, 0]
+
+    def test_world_and_camera_frames(self):
+        # the same scene seen through a rotated camera: normals and directions in that frame
+        mesh = _wall_on_floor()
+        rot = torch.tensor([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]], dtype=torch.float64)  # world y -> camera z
+        points = torch.tensor([[-0.05, 0.0, 0.0]], dtype=torch.float64)
+        d = sphere_directions(400)
+        world = shadow_visibility(mesh, points, torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64), d, torch.eye(3))
+        camera = shadow_visibility(mesh, points, torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64) @ rot.T,
+                                   d @ rot.T, rot)
+        assert torch.equal(world, camera)
+
+
+class TestSpecular:
+    def test_dominant_light(self):
+        sh = torch.zeros(3, 9, dtype=torch.float64)
+        sh[:, 0], sh[:, 3] = 2.0, 1.0  # a dipole towards +x
+        direction, colour = dominant_light(sh)
+        assert torch.allclose(direction, torch.tensor([1.0, 0, 0], dtype=torch.float64))
+        assert torch.allclose(colour, torch.full((3,), 2 * 0.282095 + 0.488603, dtype=torch.float64), atol=1e-6)
+
+    def test_blinn_phong_peak_and_back(self):
+        light = torch.tensor([1.0, 0, 1], dtype=torch.float64) / math.sqrt(2)
+        view = torch.tensor([0.0, 0, 1], dtype=torch.float64)
+        half = (light + view) / (light + view).norm()
+        normals = torch.stack([half, torch.tensor([0.0, 0, 1], dtype=torch.float64), -light])
+        colour = torch.tensor([0.5, 0.4, 0.3], dtype=torch.float64)
+        out = blinn_phong(normals, view, light, colour, 40.0)
+        assert torch.allclose(out[0], colour)
+        assert torch.allclose(out[1], colour * math.cos(math.pi / 8) ** 40)
+        assert (out[2] == 0).all()
+
+
+class TestCameraEffects:
+    def test_expose_scales(self):
+        image = torch.rand(2, 3, 4, 4)
+        gains = torch.tensor([1.1, 1.0, 0.9])
+        assert torch.allclose(expose(image, 1.5, gains), image * 1.5 * gains.view(1, 3, 1, 1))
+
+    def test_poisson_gaussian_variance(self):
+        image = torch.full((1, 3, 200, 200), 0.5, dtype=torch.float64)
+        noisy = poisson_gaussian_noise(image, 2e-3, 0.01, torch.Generator().manual_seed(0))
+        assert abs(float(noisy.var()) / (2e-3 * 0.5 + 0.01 ** 2) - 1) < 0.05
+        assert abs(float(noisy.mean()) - 0.5) < 1e-3
+
+    def test_quantise_srgb_lattice(self):
+        x = torch.rand(1000, dtype=torch.float64) * 1.2
+        q = quantise_srgb(x, 8)
+        codes = linear_to_srgb(q) * 255
+        assert torch.allclose(codes, codes.round(), atol=1e-6)
+        assert (linear_to_srgb(q) - linear_to_srgb(x.clamp(0, 1))).abs().max() <= 0.5 / 255 + 1e-9
