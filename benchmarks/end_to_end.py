@@ -59,7 +59,7 @@ def main() -> None:
     n_lights = args.lights or (2 if args.quick else 3)
     lights = evaluation_lightings(n_lights)
     # the forest alone; the refinement is applied below to the same output
-    config = {"database": {"collection": args.collection}, "training": {"cache_forests": False},
+    config = {"database": {"collection": args.collection}, "training": {"cache_forests": "never"},
               "refine": {"when": "never"}}
     load_database(DatabaseConfig(collection=args.collection))
     rows = []

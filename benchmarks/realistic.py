@@ -41,7 +41,7 @@ def main() -> None:
     parser.add_argument("--config", default="{}", help="pipeline config overrides (JSON), applied to both calls")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "realistic.json")
     args = parser.parse_args()
-    config = {"training": {"cache_forests": False}, **json.loads(args.config)}
+    config = {"training": {"cache_forests": "never"}, **json.loads(args.config)}
     shapes = scene_shapes(args.shapes, args.side, sphere=True)
     lights = evaluation_lightings(args.lights) if args.side == "test" else validation_lightings(args.lights)
     rows = []

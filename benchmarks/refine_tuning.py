@@ -37,7 +37,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "refine_tuning.json")
     args = parser.parse_args()
     variants = [json.loads(v) for v in args.variants]
-    config = {"training": {"cache_forests": False}, "refine": {"when": "never"}}
+    config = {"training": {"cache_forests": "never"}, "refine": {"when": "never"}}
     shapes = scene_shapes(args.shapes, "validation")
     lights = validation_lightings(args.shapes * args.lights_per_shape)
     rows = []

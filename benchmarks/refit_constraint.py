@@ -33,7 +33,7 @@ def main() -> None:
     for scene in synthetic_scenes(scene_shapes(args.shapes, "test"), evaluation_lightings(args.lights), focal=args.focal):
         row = {"shape": scene.shape, "lighting": scene.lighting_name}
         for valid in (True, False):
-            config = {"training": {"cache_forests": False}, "refine": {"when": "never"},
+            config = {"training": {"cache_forests": "never"}, "refine": {"when": "never"},
                       "reflectance_map": {"valid_refit": valid}}
             est = sfs_torch.estimate(scene.image, scene.mask, focal=args.focal, config=config, progress=False)
             error = normal_metrics(est.normals, scene.normals, scene.mask).median[0]

@@ -215,6 +215,10 @@ def form_image(normals: Tensor, mask: Tensor, sh: Tensor, config: FormationConfi
     return (image * mask).float()
 
 
+def _generator(seed: int, name: str) -> torch.Generator:
+    return torch.Generator().manual_seed(seed * 1_000_003 + zlib.crc32(name.encode()))
+
+
 def synthetic_scenes(
     shapes: Sequence[Shape],
     lightings: Sequence[Tuple[str, Tensor]],
@@ -227,8 +231,9 @@ def synthetic_scenes(
 ) -> Iterator[Scene]:
     """Each shape seen from one random view under each lighting (or its own ``lights_per_shape`` of them).
 
-    The views depend on ``seed`` and the shapes only, and each image's random degradations
-    on ``seed`` and its name, so two formations of the same call score the same views.
+    Each shape's view depends on ``seed`` and its name only, and each image's random
+    degradations on ``seed`` and the image's name, so two formations score the same views
+    and a shape is seen the same way whichever other shapes are asked for.
 
     Args:
         shapes: from :func:`scene_shapes`.
@@ -240,18 +245,18 @@ def synthetic_scenes(
         lights_per_shape: shape ``k`` gets lightings ``k m .. (k + 1) m - 1`` (cycling);
             ``None`` gives every shape every lighting.
     """
-    views = random_view_rotations(len(shapes), torch.Generator().manual_seed(seed))
     for k, shape in enumerate(shapes):
-        view = render_normals(shape.mesh, views[k], resolution, focal=focal)
+        rotation = random_view_rotations(1, _generator(seed, shape.name))[0]
+        view = render_normals(shape.mesh, rotation, resolution, focal=focal)
         normals, mask = view.normals[None], view.mask[None]
-        visibility = view_visibility(view, shape.mesh, views[k], formation) if formation.shadows else None
+        visibility = view_visibility(view, shape.mesh, rotation, formation) if formation.shadows else None
         if lights_per_shape is None:
             chosen = list(lightings)
         else:
             chosen = [lightings[(k * lights_per_shape + i) % len(lightings)] for i in range(lights_per_shape)]
         for light_name, sh in chosen:
             name = f"{shape.name}|{light_name}"
-            generator = torch.Generator().manual_seed(seed * 1_000_003 + zlib.crc32(name.encode()))
+            generator = _generator(seed, name)
             gains = camera_gains(formation, generator)
             image = form_image(normals, mask, sh[None], formation, generator, gains=gains, visibility=visibility,
                                focal=focal)

@@ -20,10 +20,8 @@
 """
 from __future__ import annotations
 
-import hashlib
 import logging
 import math
-import os
 import time
 import warnings
 from contextlib import contextmanager
@@ -40,7 +38,8 @@ from torch import Tensor
 from ._checks import check_finite, check_mask, check_same_size, to_batch
 from .camera import CameraConfig, centroid_rotation, rotate_normals_to_camera
 from .forest import VMF, ForestConfig, VMFForest, sample_vmf
-from .geometry_db import DatabaseConfig, GeometryDatabase, _sha256, cache_dir, load_database
+from .forest_cache import CACHE_POLICIES, evict_forests, forest_path, load_forest, save_forest
+from .geometry_db import DatabaseConfig, GeometryDatabase, load_database
 from .integrability import IntegrabilityConfig, integrate_convex, integrate_normals
 from .lighting import render_sh, rotate_sh, sh_basis_vectors
 from .reflectance_map import (
@@ -85,10 +84,12 @@ class TrainingConfig:
             estimated lighting whose colour balance is off); likewise only for an
             estimated lighting.
         seed: seed of that noise.
-        cache_forests: keep trained forests on disk, keyed by lighting and configuration.
+        cache_forests: which trained forests are kept on disk (:mod:`sfs_torch.forest_cache`),
+            keyed by lighting and configuration: ``"given"`` those for a lighting the
+            caller gave (the ones that are reused), ``"always"`` also those for
+            estimated lightings (reused only when the same image comes again), ``"never"``.
         max_cached_forests: the most forests kept on disk; the least recently used
-            beyond it are deleted (an estimated lighting differs for every image, so
-            without a bound the cache would grow by a few MB per call).
+            beyond it are deleted.
         conv_samples_per_tree: samples drawn from each tree's leaf for ``integrate="conv"``.
     """
 
@@ -96,7 +97,7 @@ class TrainingConfig:
     brightness_jitter: float = 0.3
     colour_jitter: float = 0.05
     seed: int = 0
-    cache_forests: bool = True
+    cache_forests: str = "given"
     max_cached_forests: int = 64
     conv_samples_per_tree: int = 1
 
@@ -241,22 +242,17 @@ def training_set(
     return TrainingSet(torch.cat(parts, 1), normals[:, :, centre, centre])
 
 
-def _forest_key(sh: Tensor, cfg: PipelineConfig) -> str:
-    payload = {
-        "lighting": np.round(sh.detach().double().cpu().numpy(), 6).tolist(),
-        "database": asdict(cfg.database),
-        "features": asdict(cfg.features),
-        "texton": asdict(cfg.texton),
+def _trained_forest(sh: Tensor, db: GeometryDatabase, cfg: PipelineConfig, timer: _Timer, given: bool) -> VMFForest:
+    """Train (or fetch from the cache) the forest for one lighting (``given``: the user's, not estimated)."""
+    policy = cfg.training.cache_forests
+    cached = policy == "always" or (policy == "given" and given)
+    options = {
+        "database": asdict(cfg.database), "features": asdict(cfg.features), "texton": asdict(cfg.texton),
         "training": {k: v for k, v in asdict(cfg.training).items() if k not in ("cache_forests", "max_cached_forests")},
         "forest": asdict(cfg.forest),
     }
-    return hashlib.sha256(repr(payload).encode()).hexdigest()[:24]
-
-
-def _trained_forest(sh: Tensor, db: GeometryDatabase, cfg: PipelineConfig, timer: _Timer) -> VMFForest:
-    """Train (or fetch from the cache) the forest for one lighting."""
-    path = cache_dir() / "forests" / f"{_forest_key(sh, cfg)}.safetensors"
-    forest = _cached_forest(path, sh.device) if cfg.training.cache_forests else None
+    path = forest_path(sh, options)
+    forest = load_forest(path, sh.device) if cached else None
     if forest is None:
         with timer("shade database + features"):
             data = training_set(
@@ -265,66 +261,15 @@ def _trained_forest(sh: Tensor, db: GeometryDatabase, cfg: PipelineConfig, timer
             )
         with timer("train forest"):
             forest = VMFForest(**_forest_params(cfg), device=sh.device).fit(data.features, data.normals)
-        if cfg.training.cache_forests:
-            _save_forest(forest, path)
-            _evict_forests(path.parent, cfg.training.max_cached_forests)
+        if cached:
+            save_forest(forest, path)
+            evict_forests(path.parent, cfg.training.max_cached_forests)
     return forest
 
 
 def _forest_params(cfg: PipelineConfig) -> Dict[str, Any]:
     """The forest's constructor arguments from the config (its ``_target_`` left out)."""
     return {k: v for k, v in asdict(cfg.forest).items() if k != "_target_"}
-
-
-def _checksum_path(path: Path) -> Path:
-    return path.with_suffix(".sha256")
-
-
-def _cached_forest(path: Path, device: torch.device) -> Optional[VMFForest]:
-    """The cached forest at ``path`` if it verifies; a corrupt entry is deleted, never trusted."""
-    if not path.exists():
-        return None
-    try:
-        if _checksum_path(path).read_text().strip() != _sha256(path):
-            raise ValueError("checksum mismatch")
-        forest = VMFForest.load(path)
-        if not (bool(torch.isfinite(forest.mean_).all()) and bool(torch.isfinite(forest.kappa_).all())):
-            raise ValueError("non-finite leaves")
-    except (OSError, ValueError, RuntimeError, KeyError) as err:
-        log.warning("deleting unusable cached forest %s (%s); training a new one", path, err)
-        path.unlink(missing_ok=True)
-        _checksum_path(path).unlink(missing_ok=True)
-        return None
-    log.info("reusing the forest trained for this lighting: %s", path)
-    path.touch()  # the cache evicts the least recently used forests
-    return forest.to(device)
-
-
-def _save_forest(forest: VMFForest, path: Path) -> None:
-    """Write the forest and its checksum atomically: data first, so a crash in between
-    leaves a mismatch (retrained), never a wrong pairing."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
-    forest.save(tmp)
-    digest = _sha256(tmp)
-    os.replace(tmp, path)
-    tmp_sum = tmp.with_suffix(".sha256tmp")
-    tmp_sum.write_text(digest)
-    os.replace(tmp_sum, _checksum_path(path))
-
-
-def _evict_forests(folder: Path, keep: int) -> None:
-    """Delete all but the ``keep`` most recently used forests in ``folder``."""
-
-    def last_used(path: Path) -> float:
-        try:
-            return path.stat().st_mtime
-        except FileNotFoundError:  # another process evicted it meanwhile
-            return float("-inf")
-
-    for path in sorted(folder.glob("*.safetensors"), key=last_used, reverse=True)[keep:]:
-        path.unlink(missing_ok=True)
-        _checksum_path(path).unlink(missing_ok=True)
 
 
 def _as_image_tensor(image: Any) -> Tensor:
@@ -432,8 +377,6 @@ def estimate(
     rounds = cfg.reflectance_map.refine_rounds if lighting is None else 0
     if rounds < 0:
         raise ValueError(f"reflectance_map.refine_rounds must be >= 0, got {rounds}")
-    if cfg.training.max_cached_forests < 1:
-        raise ValueError(f"training.max_cached_forests must be >= 1, got {cfg.training.max_cached_forests}")
     sh = sh.clone()
     normals = torch.zeros_like(image_b)
     confidence = torch.zeros_like(mask_b, dtype=image_b.dtype)
@@ -451,7 +394,7 @@ def estimate(
             # Perspective: train in the object's own orthographic frame (the lighting
             # seen from its centroid), then rotate the predictions to the camera frame.
             local_sh = sh[b] if centroid is None else rotate_sh(sh[b], centroid.T.to(sh.dtype))
-            forest = _trained_forest(local_sh, db, train_cfg, timer)
+            forest = _trained_forest(local_sh, db, train_cfg, timer, given=lighting is not None)
             with timer("predict"):
                 pred: VMF = forest.predict(rows)
             normals[b] = 0
@@ -598,7 +541,11 @@ def _check_principal_point(principal_point: Any, focal: Optional[float]) -> Opti
 
 
 def _check_forest_config(cfg: PipelineConfig) -> None:
-    """Validate the forest's options before any training set is shaded."""
+    """Validate the forest's and its cache's options before any training set is shaded."""
+    if cfg.training.cache_forests not in CACHE_POLICIES:
+        raise ValueError(f"training.cache_forests must be one of {CACHE_POLICIES}, got {cfg.training.cache_forests!r}")
+    if not (isinstance(cfg.training.max_cached_forests, int) and cfg.training.max_cached_forests >= 1):
+        raise ValueError(f"training.max_cached_forests must be an integer >= 1, got {cfg.training.max_cached_forests!r}")
     n_features = 3 * cfg.features.rgb + 3 * cfg.features.silhouette + N_TEXTON_FILTERS * cfg.features.texton
     try:
         VMFForest(**_forest_params(cfg))._validate_params(max(n_features, 1))

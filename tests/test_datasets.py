@@ -66,6 +66,8 @@ class TestSyntheticScenes:
             assert torch.equal(x.normals, y.normals) and torch.equal(x.mask, y.mask)
         again = _scenes(DEGRADATIONS["all"])
         assert all(torch.equal(x.image, y.image) for x, y in zip(b, again))
+        alone = _scenes(DEGRADATIONS["all"], shapes=_shapes()[1:])  # without the sphere
+        assert torch.equal(alone[0].image, b[1].image)
 
     def test_shadows_darken_only_the_concave_shape(self):
         exact, shadowed = _scenes(replace(DEGRADATIONS["exact"], noise=0.0)), _scenes(DEGRADATIONS["shadows"])

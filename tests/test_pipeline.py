@@ -9,6 +9,7 @@ from scenes import sphere
 import sfs_torch
 from sfs_torch.lighting import natural_lightings, render_sh
 from sfs_torch.metrics import lmse, normal_metrics
+from sfs_torch import pipeline
 from sfs_torch.pipeline import PipelineConfig, resolve_config, training_set
 from sfs_torch.reflectance_map import refit_lighting
 
@@ -244,13 +245,13 @@ class TestForestCache:
         middle = len(data) // 2
         data[middle : middle + 4096] = os.urandom(4096)  # random bytes, size unchanged
         path.write_bytes(bytes(data))
-        with caplog.at_level("WARNING", logger="sfs_torch.pipeline"):
+        with caplog.at_level("WARNING", logger="sfs_torch.forest_cache"):
             again = sfs_torch.estimate(image, mask, lighting=sh, config=TINY, progress=False)
         assert "checksum mismatch" in caplog.text
         assert torch.equal(again.normals, first.normals)  # retrained: the same forest as before
         assert path.with_suffix(".sha256").read_text() == hashlib.sha256(path.read_bytes()).hexdigest()
         caplog.clear()
-        with caplog.at_level("WARNING", logger="sfs_torch.pipeline"):
+        with caplog.at_level("WARNING", logger="sfs_torch.forest_cache"):
             sfs_torch.estimate(image, mask, lighting=sh, config=TINY, progress=False)
         assert "unusable" not in caplog.text  # the replacement verifies
 
@@ -258,6 +259,25 @@ class TestForestCache:
         _, mask, sh, image = scene
         with pytest.raises(ValueError, match="max_cached_forests"):
             sfs_torch.estimate(image, mask, lighting=sh, config=dict(TINY, training={"max_cached_forests": 0}), progress=False)
+
+    @pytest.mark.parametrize("policy, given, estimated", [("given", 1, 0), ("always", 1, 2), ("never", 0, 0)])
+    def test_policy(self, scene, tmp_path, monkeypatch, policy, given, estimated):
+        # an estimated lighting is new for nearly every image: its forests are not kept by default
+        monkeypatch.setenv("SFS_TORCH_CACHE", str(tmp_path))
+        _, mask, sh, image = scene
+        config = dict(TINY, training={"cache_forests": policy}, reflectance_map={"refine_rounds": 1})
+        forests = tmp_path / "forests"
+        sfs_torch.estimate(image, mask, lighting=sh, config=config, progress=False)
+        assert len(list(forests.glob("*.safetensors"))) == given
+        sfs_torch.estimate(image, mask, config=config, progress=False)
+        assert len(list(forests.glob("*.safetensors"))) == given + estimated
+
+    def test_unknown_policy_fails_before_training(self, scene, monkeypatch):
+        _, mask, sh, image = scene
+        monkeypatch.setattr(pipeline, "load_database", lambda *a, **k: pytest.fail("validated too late"))
+        with pytest.raises(ValueError, match="training.cache_forests must be one of"):
+            sfs_torch.estimate(image, mask, lighting=sh, config=dict(TINY, training={"cache_forests": True}),
+                               progress=False)
 
 
 class TestConfig:
