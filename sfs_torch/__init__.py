@@ -16,14 +16,16 @@ modules follow the paper's pipeline (Fig. 2):
   lighting, evaluation metrics, files
 - :mod:`sfs_torch.pipeline`: :func:`estimate`, the whole method
 """
-import os
-
-# Idle OpenMP threads spin by default; on a small shared CPU that made the forest's many
-# short parallel loops 20-50x slower (docs/forest.md). Only effective when torch is
-# imported after this package, and only if the user has not chosen a policy.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-from .pipeline import Estimate, PipelineConfig, estimate  # noqa: E402
+from importlib import import_module
 
 __version__ = "0.1.0"
 __all__ = ["estimate", "Estimate", "PipelineConfig", "__version__"]
+
+
+def __getattr__(name: str):
+    # Lazy, so that importing the package (or its command-line entry points) neither
+    # imports torch nor changes the process: ``sfs_torch.cli`` chooses OpenMP's wait
+    # policy before torch starts (docs/forest.md), which an eager import would pre-empt.
+    if name in ("estimate", "Estimate", "PipelineConfig"):
+        return getattr(import_module(".pipeline", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -17,23 +17,28 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, Optional
 
-import hydra
-import numpy as np
-import torch
-from hydra.core.config_store import ConfigStore
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, OmegaConf
+# Idle OpenMP threads spin by default; on a small shared CPU that made the forest's many
+# short parallel loops 20-50x slower (docs/forest.md). The command owns its process, so it
+# chooses a passive policy (unless the user chose one) before torch starts its threads.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from . import io
-from .figures import confidence_display_max, summary_figure
-from .geometry_db import evaluation_shapes
-from .integrability import depth_to_mesh
-from .lighting import natural_lightings, render_sh, render_sphere
-from .metrics import lmse, normal_metrics
-from .novel_view import render_novel_view
-from .pipeline import Estimate, PipelineConfig, estimate
-from .rendering import random_view_rotations, render_normals
-from .silhouette import coarse_normals
+import hydra  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from hydra.core.config_store import ConfigStore  # noqa: E402
+from hydra.core.hydra_config import HydraConfig  # noqa: E402
+from omegaconf import DictConfig, OmegaConf  # noqa: E402
+
+from . import io  # noqa: E402
+from .figures import confidence_display_max, summary_figure  # noqa: E402
+from .geometry_db import evaluation_shapes  # noqa: E402
+from .integrability import depth_to_mesh  # noqa: E402
+from .lighting import natural_lightings, render_sh, render_sphere  # noqa: E402
+from .metrics import lmse, normal_metrics  # noqa: E402
+from .novel_view import render_novel_view  # noqa: E402
+from .pipeline import Estimate, PipelineConfig, estimate  # noqa: E402
+from .rendering import random_view_rotations, render_normals  # noqa: E402
+from .silhouette import coarse_normals  # noqa: E402
 
 log = logging.getLogger("sfs_torch")
 

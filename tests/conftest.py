@@ -1,5 +1,10 @@
-import pytest
-import torch
+import os
+
+# as the command does (sfs_torch.cli): spinning OpenMP threads slow a loaded 2-core runner
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
 
 def pytest_addoption(parser):
