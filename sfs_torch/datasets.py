@@ -103,6 +103,12 @@ class Scene:
             departures from it, not part of it.
         source_lighting: :math:`(1, 3, 9)` the lighting the image was rendered with.
         focal: the camera's focal length in pixels, ``None`` for orthographic.
+        principal_point: the camera's ``(cx, cy)`` in pixels (SPEC convention), ``None``
+            for the image centre.
+
+    Cases loaded from disk (:mod:`sfs_torch.dataset_loaders`) may lack ground truth:
+    ``normals`` is then ``None``, and ``lighting`` / ``source_lighting`` are ``None``
+    when no lighting is known either; scores that need them must skip such cases.
     """
 
     name: str
@@ -110,10 +116,11 @@ class Scene:
     lighting_name: str
     image: Tensor
     mask: Tensor
-    normals: Tensor
-    lighting: Tensor
-    source_lighting: Tensor
+    normals: Optional[Tensor]
+    lighting: Optional[Tensor]
+    source_lighting: Optional[Tensor]
     focal: Optional[float]
+    principal_point: Optional[Tuple[float, float]] = None
 
 
 def evaluation_lightings(n: int = 3, albedo: float = 0.8) -> List[Tuple[str, Tensor]]:
