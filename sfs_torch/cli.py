@@ -15,7 +15,7 @@ import sys
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Optional
+from typing import Any, Dict, Optional, Tuple
 
 # Idle OpenMP threads spin by default; on a small shared CPU that made the forest's many
 # short parallel loops 20-50x slower (docs/forest.md). The command owns its process, so it
@@ -27,6 +27,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from hydra.core.config_store import ConfigStore  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
+from hydra.types import RunMode  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from . import io  # noqa: E402
@@ -75,6 +76,9 @@ class AppConfig(PipelineConfig):
     image_srgb: bool = True
     out: Optional[str] = None
     device: str = "cpu"
+    # mesh files written when there is a depth map: any of io.MESH_FORMATS ("ply", "obj",
+    # "glb"); [] for none. Typed Any so that a bad value reaches _mesh_formats' one-line error.
+    mesh_formats: Any = field(default_factory=lambda: ["ply"])
     demo: DemoConfig = field(default_factory=DemoConfig)
 
 
@@ -109,10 +113,25 @@ def _demo_inputs(cfg: DictConfig, device: torch.device) -> Dict[str, Any]:
 
 
 # written only by some runs: a rerun into the same folder without them removes them
-OPTIONAL_OUTPUTS = ("depth.npy", "mesh.ply", "novel_view.png")
+OPTIONAL_OUTPUTS = ("depth.npy", "depth.png", "depth.json", *(f"mesh.{kind}" for kind in io.MESH_FORMATS), "novel_view.png")
 
 
-def _write_outputs(out: Path, est: Estimate, camera: DictConfig) -> None:
+def _mesh_formats(value: Any) -> Tuple[str, ...]:
+    """Validate ``mesh_formats`` (a list of io.MESH_FORMATS, or one name); return them in order, once each."""
+    allowed = ", ".join(io.MESH_FORMATS)
+    example = "(e.g. mesh_formats=[ply,glb], [] for none)"
+    names = [value] if isinstance(value, str) else value
+    if OmegaConf.is_list(names):
+        names = OmegaConf.to_container(names)
+    if not isinstance(names, (list, tuple)) or not all(isinstance(name, str) for name in names):
+        raise ValueError(f"mesh_formats must be a list of {allowed} {example}, got {value!r}")
+    unknown = [name for name in names if name.lower() not in io.MESH_FORMATS]
+    if unknown:
+        raise ValueError(f"mesh_formats may hold {allowed} {example}, got {unknown[0]!r}")
+    return tuple(dict.fromkeys(name.lower() for name in names))
+
+
+def _write_outputs(out: Path, est: Estimate, camera: DictConfig, mesh_formats: Tuple[str, ...]) -> None:
     normals = est.normals.cpu()
     io.write_normals_npy(out / "normals.npy", normals)
     io.write_normals_png(out / "normals.png", normals)
@@ -122,10 +141,33 @@ def _write_outputs(out: Path, est: Estimate, camera: DictConfig) -> None:
     scale = confidence_display_max(kappa, est.mask.cpu())
     io.write_image(out / "confidence.png", (kappa[0] / scale).clamp(0, 1), srgb=False)
     if est.depth is not None:
-        np.save(out / "depth.npy", est.depth.cpu()[0].numpy().astype("float32"))
-        mesh = depth_to_mesh(est.depth.cpu()[0], est.mask.cpu()[0], camera.focal, camera.principal_point)
-        mesh.export(out / "mesh.ply")
+        depth, mask = est.depth.cpu()[0], est.mask.cpu()[0]
+        np.save(out / "depth.npy", depth.numpy().astype("float32"))
+        decode = io.write_depth_png(out / "depth.png", depth, mask)
+        (out / "depth.json").write_text(json.dumps(_depth_description(decode, camera), indent=2) + "\n")
+        mesh = depth_to_mesh(depth, mask, camera.focal, camera.principal_point)
+        # vertex k is the k-th mask pixel in row-major order: its normal is the estimate there
+        vertex_normals = est.normals.cpu()[:, mask].T
+        for kind in mesh_formats:
+            io.write_mesh(out / f"mesh.{kind}", mesh, vertex_normals=vertex_normals)
         io.write_image(out / "novel_view.png", render_novel_view(mesh, est.lighting.cpu()))
+
+
+def _depth_description(decode: Dict[str, float], camera: DictConfig) -> Dict[str, Any]:
+    """``depth.json``: how ``depth.png`` decodes to the values of ``depth.npy``, and what they mean."""
+    if camera.focal is None:
+        meaning = "orthographic: height towards the viewer (camera-frame z, larger = nearer) in pixels, up to an offset"
+    else:
+        meaning = "perspective: distance d along the optical axis (the point d (u/f, v/f, -1)), up to a global scale"
+    principal_point = None if camera.principal_point is None else list(camera.principal_point)
+    return {
+        "file": "depth.png",
+        "decode": "depth = scale * code + offset where code > 0; code 0 is outside the mask",
+        **decode,
+        "depth": meaning,
+        "focal": camera.focal,
+        "principal_point": principal_point,
+    }
 
 
 def _publish(staging: Path, out: Path) -> None:
@@ -150,10 +192,26 @@ def _device(name: str) -> torch.device:
     return device
 
 
+def _output_folder(cfg: DictConfig) -> Path:
+    """``out``; in a sweep (``-m``) or without ``out``, the job's Hydra output folder.
+
+    In a sweep every job gets its own subfolder (``hydra.sweep.dir/hydra.sweep.subdir``, the
+    sweep folder being ``out`` when given), so that parallel jobs never write into one folder.
+    """
+    if HydraConfig.initialized():
+        hydra_cfg = HydraConfig.get()
+        if not cfg.out or hydra_cfg.mode == RunMode.MULTIRUN:
+            return Path(hydra_cfg.runtime.output_dir)
+    if not cfg.out:
+        raise ValueError("out must be given when the config was not composed by the sfs-torch command")
+    return Path(cfg.out)
+
+
 def run(cfg: DictConfig) -> Dict[str, float]:
     """Run the app on a composed config; returns the key numbers (also written as JSON)."""
     device = _device(cfg.device)
-    out = Path(cfg.out) if cfg.out else Path(HydraConfig.get().runtime.output_dir)
+    mesh_formats = _mesh_formats(cfg.mesh_formats)
+    out = _output_folder(cfg)
     pipeline_cfg = _pipeline_config(cfg)
     if cfg.image is None:
         if cfg.mask is not None:
@@ -172,7 +230,7 @@ def run(cfg: DictConfig) -> Dict[str, float]:
     out.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=".sfs-torch-partial-", dir=out))
     try:
-        _write_outputs(staging, est, cfg.camera)
+        _write_outputs(staging, est, cfg.camera, mesh_formats)
         numbers = _finish(cfg, staging, est, image, mask, demo)
         _publish(staging, out)
     finally:

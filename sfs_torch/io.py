@@ -4,7 +4,9 @@ Everything that touches the file system or NumPy lives here, so that the operati
 stay pure tensor functions. Files follow SPEC: images are PNG (8 or 16 bit, sRGB
 unless told otherwise), JPEG, or ``.npy`` float ``(H, W, 3)`` linear RGB; masks are
 PNG (non-zero = object), the alpha channel of an RGBA PNG, or ``.npy``; normals are
-``.npy`` ``(H, W, 3)`` float32 or a 16-bit PNG; lighting is JSON ``{"sh": [[9] x 3]}``.
+``.npy`` ``(H, W, 3)`` float32 or a 16-bit PNG; lighting is JSON ``{"sh": [[9] x 3]}``;
+depth maps are a 16-bit PNG plus the scale and offset that decode it; meshes are PLY, OBJ
+or glTF binary (GLB) with per-vertex normals, written through trimesh.
 
 PNG and JPEG go through OpenCV, which keeps 16-bit samples (PIL and imageio's defaults
 drop them to 8 bits); its BGR(A) channel order is turned into RGB(A) here.
@@ -22,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._checks import check_finite, check_shape
+from ._checks import check_finite, check_mask, check_shape
 
 __all__ = [
     "ImageAndMask",
@@ -38,6 +40,11 @@ __all__ = [
     "read_normals_npy",
     "read_lighting",
     "write_lighting",
+    "DepthAndMask",
+    "write_depth_png",
+    "read_depth_png",
+    "MESH_FORMATS",
+    "write_mesh",
 ]
 
 PathLike = Union[str, os.PathLike]
@@ -50,6 +57,24 @@ _MASK_FORMATS = (
 # n = 0 (the background) is the exact code 32768 and decodes to exactly 0.
 _NORMAL_ZERO = 32768.0
 _NORMAL_STEP = 32767.0
+# 16-bit depth PNG: code 0 is the background, codes 1..65535 span [min, max] of the depth
+# over the mask, so that depth = scale * code + offset on the mask.
+_DEPTH_CODES = 65534.0
+# mesh file formats of write_mesh, by file suffix
+MESH_FORMATS = ("ply", "obj", "glb")
+
+
+@dataclass(frozen=True)
+class DepthAndMask:
+    """A depth map and the mask it is defined on, as read by :func:`read_depth_png`.
+
+    Attributes:
+        depth: :math:`(1, H, W)` float32, 0 outside the mask.
+        mask: :math:`(1, H, W)` bool, True where the file holds a depth (code > 0).
+    """
+
+    depth: Tensor
+    mask: Tensor
 
 
 @dataclass(frozen=True)
@@ -458,3 +483,152 @@ def write_lighting(path: PathLike, sh: Tensor) -> None:
         rows = [[str(v) for v in row] for row in values.to(torch.float32).numpy()]
     lines = ",\n".join("    [" + ", ".join(row) + "]" for row in rows)
     p.write_text('{\n  "sh": [\n' + lines + "\n  ]\n}\n", encoding="utf-8")
+
+
+def _single_map(x: Tensor, name: str) -> Tensor:
+    """Accept ``(H, W)``, ``(1, H, W)`` or ``(1, 1, H, W)`` and return ``(H, W)``."""
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor of shape (1, H, W) or (H, W), got {type(x).__name__}")
+    if x.ndim < 2 or x.ndim > 4 or any(n != 1 for n in x.shape[:-2]):
+        raise ValueError(f"{name} must have shape (1, H, W) or (H, W), got {tuple(x.shape)}")
+    return x.reshape(x.shape[-2:])
+
+
+def write_depth_png(path: PathLike, depth: Tensor, mask: Tensor) -> dict:
+    """Write a depth map as a 16-bit grey PNG and return what decodes it.
+
+    On the mask, the depth is mapped linearly onto the codes 1 (its minimum) to 65535
+    (its maximum); code 0 marks the background. The depth on the mask is then
+    ``scale * code + offset``, to within half a quantisation step ``scale``
+    (``(max - min) / 65534``). A constant depth is stored as code 1 with ``scale = 0``.
+    The depth keeps its meaning and units (:func:`sfs_torch.integrability.depth_to_mesh`):
+    the file is a lossy copy of ``depth.npy`` meant for viewers and image tools.
+
+    Args:
+        path: output file ending in ``.png``; missing parent folders are created.
+        depth: :math:`(1, H, W)` or :math:`(H, W)` float; values outside the mask are ignored.
+        mask: same size, bool or 0/1, not empty.
+
+    Returns:
+        ``{"scale": float, "offset": float, "depth_min": float, "depth_max": float}``
+        (plain floats, ready for JSON).
+
+    Raises:
+        ValueError: wrong shapes, an empty mask, NaN/inf depth on the mask, or a path not
+            ending in ``.png``.
+
+    Example:
+        >>> import tempfile, pathlib
+        >>> d = torch.tensor([[9.0, 1.0], [2.0, 4.0]])
+        >>> m = torch.tensor([[False, True], [True, True]])
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     info = write_depth_png(pathlib.Path(tmp) / "depth.png", d, m)
+        ...     back = read_depth_png(pathlib.Path(tmp) / "depth.png", scale=info["scale"], offset=info["offset"])
+        >>> info["depth_min"], info["depth_max"]
+        (1.0, 4.0)
+        >>> back.depth  # within scale / 2 of the depth on the mask, 0 outside
+        tensor([[[0.0000, 1.0000],
+                 [2.0000, 4.0000]]])
+    """
+    d = _single_map(depth, "depth")
+    if not d.is_floating_point():
+        raise ValueError(f"depth must be a floating-point tensor, got {d.dtype}")
+    m = _single_map(mask, "mask")
+    if m.shape != d.shape:
+        raise ValueError(f"mask is {tuple(m.shape)} (H, W) but depth is {tuple(d.shape)}: they must have the same size")
+    m = check_mask(m[None, None], "mask", allow_full=True)[0, 0].cpu()
+    d = d.detach().to("cpu", torch.float64)
+    check_finite(d[m], "depth on the mask")
+    p = _writable(path, "path", ".png")
+    low, high = float(d[m].min()), float(d[m].max())
+    scale = (high - low) / _DEPTH_CODES
+    codes = torch.zeros(d.shape, dtype=torch.float64)
+    if scale > 0:
+        codes[m] = 1 + torch.round((d[m] - low) / scale).clamp(0, _DEPTH_CODES)
+    else:
+        codes[m] = 1
+    _write_png(p, codes.numpy().astype(np.uint16))
+    return {"scale": scale, "offset": low - scale, "depth_min": low, "depth_max": high}
+
+
+def read_depth_png(path: PathLike, *, scale: float, offset: float) -> DepthAndMask:
+    """Read a depth map written by :func:`write_depth_png`.
+
+    Args:
+        path: a 16-bit grey PNG.
+        scale, offset: as returned by :func:`write_depth_png` (the CLI writes them into
+            ``depth.json``).
+
+    Returns:
+        :class:`DepthAndMask`: ``depth`` :math:`(1, H, W)` float32 ``scale * code + offset``
+        on the mask, 0 elsewhere; ``mask`` :math:`(1, H, W)` bool, code > 0.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: the file is not a 16-bit grey PNG.
+    """
+    expected = "a 16-bit grey PNG written by write_depth_png"
+    p = _existing_file(path, "path")
+    array = _decode_raster(p, "path", expected)
+    if array.dtype != np.uint16 or array.ndim != 2:
+        raise _bad("path", p, expected, f"{array.dtype} samples of shape {array.shape}")
+    codes = torch.from_numpy(array.astype(np.float64))
+    mask = codes > 0
+    depth = torch.where(mask, float(scale) * codes + float(offset), 0.0)
+    return DepthAndMask(depth=depth.to(torch.float32)[None].contiguous(), mask=mask[None].contiguous())
+
+
+def write_mesh(path: PathLike, mesh, *, vertex_normals: Optional[Union[Tensor, np.ndarray]] = None) -> None:
+    """Write a triangle mesh with per-vertex normals; the file suffix chooses the format.
+
+    ``.ply`` (binary PLY), ``.obj`` (Wavefront OBJ, one ``vn`` line a vertex, faces
+    ``f a//a b//b c//c``) or ``.glb`` (binary glTF 2.0: one mesh, no material). All three
+    store the vertices in their order (unreferenced ones included), the faces, and the
+    normals, read back by ``trimesh.load`` as ``vertex_normals`` (trimesh's OBJ reader
+    drops vertices no face uses, and then the normals too). Vertices, faces and normals
+    are written as they are: the camera frame (x right, y up, z towards the viewer) is
+    also glTF's axis convention. PLY and GLB store vertices and normals as float32;
+    GLB normals are unit length (glTF requires it).
+
+    Args:
+        path: output file ending in ``.ply``, ``.obj`` or ``.glb``; missing parent folders
+            are created.
+        mesh: a ``trimesh.Trimesh`` (e.g. :func:`sfs_torch.integrability.depth_to_mesh`);
+            it is not modified.
+        vertex_normals: :math:`(V, 3)` normals, one per vertex (e.g. the estimated normals
+            at the mask pixels); ``None`` writes ``mesh.vertex_normals`` (given or
+            computed by trimesh from the faces).
+
+    Raises:
+        TypeError: ``mesh`` is not a ``trimesh.Trimesh``.
+        ValueError: an unknown suffix, or ``vertex_normals`` of the wrong shape or with
+            NaN/inf.
+    """
+    import trimesh
+
+    p = Path(path)
+    kind = p.suffix.lower().lstrip(".")
+    if kind not in MESH_FORMATS:
+        raise ValueError(f"path must end in {', '.join('.' + f for f in MESH_FORMATS)}, got '{p}'")
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise TypeError(f"mesh must be a trimesh.Trimesh, got {type(mesh).__name__}")
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    normals = mesh.vertex_normals if vertex_normals is None else vertex_normals
+    if isinstance(normals, Tensor):
+        normals = normals.detach().cpu().numpy()
+    normals = np.asarray(normals, dtype=np.float64)
+    if normals.shape != vertices.shape:
+        raise ValueError(f"vertex_normals must have shape {vertices.shape} (one per vertex), got {normals.shape}")
+    if not np.isfinite(normals).all():
+        raise ValueError(f"vertex_normals contains {int((~np.isfinite(normals)).sum())} NaN or infinite values")
+    # a copy holding the normals: trimesh keeps given normals only until its data change
+    copy = trimesh.Trimesh(vertices=vertices, faces=np.asarray(mesh.faces, dtype=np.int64), process=False)
+    copy.vertex_normals = normals
+    if kind == "ply":
+        data = copy.export(file_type="ply", encoding="binary", vertex_normal=True, include_attributes=False)
+    elif kind == "obj":
+        data = copy.export(file_type="obj", include_normals=True, include_color=False, include_texture=False)
+    else:
+        data = copy.export(file_type="glb", include_normals=True)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_bytes(data.encode("utf-8") if isinstance(data, str) else data)

@@ -5,6 +5,8 @@ import sys
 import numpy as np
 import pytest
 import torch
+import trimesh
+from omegaconf import OmegaConf
 from scenes import sphere
 
 from sfs_torch import io
@@ -53,15 +55,32 @@ class TestCLI:
     def test_user_files_with_integration(self, tmp_path):
         mask = write_sphere(tmp_path)
         out = tmp_path / "result"
-        result = run_cli([*TINY, "image=obj.png", "mask=obj_mask.png", f"out={out}", "integrate=l2"], tmp_path)
+        args = [*TINY, "image=obj.png", "mask=obj_mask.png", f"out={out}", "integrate=l2", "mesh_formats=[ply,obj,glb]"]
+        result = run_cli(args, tmp_path)
         assert result.returncode == 0, result.stderr
-        for name in SPEC_FILES + ["depth.npy", "mesh.ply", "novel_view.png", "summary.png"]:
+        for name in SPEC_FILES + ["depth.npy", "depth.png", "depth.json", "novel_view.png", "summary.png"]:
             assert (out / name).is_file(), name
         normals = np.load(out / "normals.npy")
-        assert np.all(normals[~mask[0].numpy()] == 0)
-        assert np.allclose(np.linalg.norm(normals[mask[0].numpy()], axis=-1), 1, atol=1e-5)
+        m = mask[0].numpy()
+        assert np.all(normals[~m] == 0)
+        assert np.allclose(np.linalg.norm(normals[m], axis=-1), 1, atol=1e-5)
         sh = io.read_lighting(out / "lighting.json")
         assert sh.shape == (3, 9)
+        # depth.png + depth.json decode to depth.npy within half a quantisation step
+        depth = np.load(out / "depth.npy")
+        decode = json.loads((out / "depth.json").read_text())
+        assert decode["file"] == "depth.png" and decode["focal"] is None
+        back = io.read_depth_png(out / "depth.png", scale=decode["scale"], offset=decode["offset"])
+        assert np.array_equal(back.mask[0].numpy(), m)
+        assert np.abs(back.depth[0].numpy() - depth)[m].max() <= decode["scale"] / 2 + 1e-5
+        assert (decode["depth_min"], decode["depth_max"]) == pytest.approx((depth[m].min(), depth[m].max()))
+        # every mesh: one vertex per mask pixel (row-major) carrying the estimated normal there
+        for kind in ("ply", "obj", "glb"):
+            loaded = trimesh.load(out / f"mesh.{kind}", process=False, maintain_order=True)
+            mesh = next(iter(loaded.geometry.values())) if isinstance(loaded, trimesh.Scene) else loaded
+            assert len(mesh.vertices) == m.sum(), kind
+            np.testing.assert_allclose(mesh.vertices[:, 2], depth[m], atol=1e-4, err_msg=kind)
+            np.testing.assert_allclose(mesh.vertex_normals, normals[m], atol=1e-6, err_msg=kind)
 
     def test_known_lighting(self, tmp_path):
         write_sphere(tmp_path)
@@ -82,6 +101,37 @@ class TestCLI:
         assert len(jobs) == 2
         for job in jobs:
             assert (job / "normals.npy").is_file()
+
+    def test_joblib_sweep_writes_a_folder_per_job(self, tmp_path):
+        pytest.importorskip("hydra_plugins.hydra_joblib_launcher", reason="pip install -e '.[sweep]'")
+        write_sphere(tmp_path)
+        sweep = tmp_path / "sweep"
+        args = ["-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", *TINY, "image=obj.png", "mask=obj_mask.png",
+                "forest.seed=0,1", f"out={sweep}"]
+        result = run_cli(args, tmp_path)
+        assert result.returncode == 0, result.stderr
+        assert "Joblib.Parallel(n_jobs=2" in result.stdout + result.stderr  # the joblib launcher ran the jobs
+        jobs = sorted(p for p in sweep.iterdir() if p.is_dir() and not p.name.startswith("."))
+        assert [job.name for job in jobs] == ["0", "1"]
+        seeds = []
+        for job in jobs:
+            assert (job / "normals.npy").is_file() and (job / "lighting.json").is_file()
+            assert not (sweep / "normals.npy").exists()
+            resolved = OmegaConf.load(job / ".hydra" / "config.yaml")
+            assert resolved.image == "obj.png" and resolved.forest.n_trees == 4
+            seeds.append(resolved.forest.seed)
+            assert f"forest.seed={resolved.forest.seed}" in OmegaConf.load(job / ".hydra" / "overrides.yaml")
+        assert sorted(seeds) == [0, 1]
+        # the same image with another forest: the normals differ
+        assert not np.array_equal(np.load(jobs[0] / "normals.npy"), np.load(jobs[1] / "normals.npy"))
+
+    def test_bad_mesh_format_is_one_clear_line(self, tmp_path):
+        result = run_cli([*TINY, "mesh_formats=[ply,stl]", "out=x"], tmp_path)
+        assert result.returncode == 2
+        assert "mesh_formats may hold ply, obj, glb" in result.stderr + result.stdout
+        assert "got 'stl'" in result.stderr + result.stdout
+        assert "Traceback" not in result.stderr
+        assert not (tmp_path / "x" / "normals.npy").exists()
 
     def test_bad_input_is_one_clear_line(self, tmp_path):
         result = run_cli([*TINY, "image=missing.png", "out=x"], tmp_path)
@@ -112,15 +162,65 @@ class TestCLI:
     def test_rerun_removes_the_previous_runs_extras(self, tmp_path):
         write_sphere(tmp_path)
         out = tmp_path / "result"
-        first = run_cli([*TINY, "image=obj.png", "mask=obj_mask.png", f"out={out}", "integrate=l2"], tmp_path)
+        args = [*TINY, "image=obj.png", "mask=obj_mask.png", f"out={out}"]
+        first = run_cli([*args, "integrate=l2", "mesh_formats=[ply,obj,glb]"], tmp_path)
         assert first.returncode == 0, first.stderr
-        assert (out / "depth.npy").is_file()
-        again = run_cli([*TINY, "image=obj.png", "mask=obj_mask.png", f"out={out}"], tmp_path)
+        extras = ("depth.npy", "depth.png", "depth.json", "mesh.ply", "mesh.obj", "mesh.glb", "novel_view.png")
+        for name in extras:
+            assert (out / name).is_file(), name
+        again = run_cli(args, tmp_path)
         assert again.returncode == 0, again.stderr
-        for name in ("depth.npy", "mesh.ply", "novel_view.png"):
+        for name in extras:
             assert not (out / name).exists(), name
         assert (out / "normals.npy").is_file()
         assert not list(out.glob(".sfs-torch-partial-*"))
+
+
+class TestMeshFormats:
+    @pytest.mark.parametrize(
+        "value, expected",
+        [(["ply"], ("ply",)), (["glb", "PLY", "glb"], ("glb", "ply")), ([], ()), ("obj", ("obj",))],
+    )
+    def test_valid(self, value, expected):
+        from sfs_torch.cli import _mesh_formats
+
+        assert _mesh_formats(OmegaConf.create({"v": value}).v) == expected
+
+    @pytest.mark.parametrize("value", [["stl"], None, 3, [1], "ply,obj"])
+    def test_invalid(self, value):
+        from sfs_torch.cli import _mesh_formats
+
+        with pytest.raises(ValueError, match="mesh_formats"):
+            _mesh_formats(OmegaConf.create({"v": value}).v)
+
+    def test_checked_before_any_work(self, tmp_path, monkeypatch):
+        from hydra import compose, initialize_config_module
+
+        import sfs_torch.cli as cli
+
+        def never(*args, **kwargs):
+            raise AssertionError("work started before mesh_formats was checked")
+
+        monkeypatch.setattr(cli, "_demo_inputs", never)
+        monkeypatch.setattr(cli, "estimate", never)
+        with initialize_config_module(config_module="sfs_torch.conf", version_base="1.3"):
+            cfg = compose(config_name="config", overrides=[*TINY, "mesh_formats=[obj,gltf]", f"out={tmp_path / 'r'}"])
+        with pytest.raises(ValueError, match="mesh_formats may hold ply, obj, glb .*got 'gltf'"):
+            cli.run(cfg)
+        assert not (tmp_path / "r").exists()
+
+    def test_publish_drops_the_formats_a_rerun_did_not_write(self, tmp_path):
+        from sfs_torch.cli import _publish
+
+        out, staging = tmp_path / "out", tmp_path / "out" / ".sfs-torch-partial-x"
+        staging.mkdir(parents=True)
+        for name in ("mesh.ply", "mesh.obj", "depth.png", "depth.json", "normals.npy"):
+            (out / name).write_text("old")
+        for name in ("mesh.glb", "depth.png", "depth.json", "normals.npy"):
+            (staging / name).write_text("new")
+        _publish(staging, out)
+        files = {p.name: p.read_text() for p in out.iterdir() if p.is_file()}
+        assert files == {"mesh.glb": "new", "depth.png": "new", "depth.json": "new", "normals.npy": "new"}
 
 
 class TestAtomicOutputs:

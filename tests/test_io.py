@@ -4,9 +4,11 @@ import cv2
 import numpy as np
 import pytest
 import torch
+import trimesh
 from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 
 from sfs_torch import io
+from sfs_torch.integrability import depth_to_mesh
 from sfs_torch.metrics import angular_error
 
 
@@ -287,6 +289,132 @@ class TestNormalsNpy:
         np.save(tmp_path / "int.npy", np.zeros((4, 5, 3), dtype=np.int32))
         with pytest.raises(ValueError, match="dtype int32"):
             io.read_normals_npy(tmp_path / "int.npy")
+
+
+def _hemisphere(size=24, radius=9.0):
+    """Height ``(H, W)`` float32 of a hemisphere over a disk mask, its mask and unit normals ``(3, H, W)``."""
+    c = torch.arange(size, dtype=torch.float64) + 0.5 - size / 2
+    v, u = torch.meshgrid(-c, c, indexing="ij")
+    mask = u**2 + v**2 < (radius - 1) ** 2
+    z = torch.sqrt((radius**2 - u**2 - v**2).clamp_min(0))
+    normals = torch.stack([u, v, z]) / radius * mask
+    return (z * mask).float(), mask, normals.float()
+
+
+def _load_mesh(path):
+    loaded = trimesh.load(path, process=False, maintain_order=True)
+    if isinstance(loaded, trimesh.Scene):  # GLB: one mesh under an identity node
+        (node,) = loaded.graph.nodes_geometry
+        np.testing.assert_array_equal(loaded.graph[node][0], np.eye(4))
+        (loaded,) = loaded.geometry.values()
+    return loaded
+
+
+class TestDepthPNG:
+    def test_round_trip_within_the_quantisation_step(self, tmp_path):
+        depth, mask, _ = _hemisphere()
+        depth = depth - 4.0  # negative heights too
+        info = io.write_depth_png(tmp_path / "d.png", depth, mask[None])
+        assert set(info) == {"scale", "offset", "depth_min", "depth_max"}
+        assert all(type(v) is float for v in info.values())
+        assert info["depth_min"] == float(depth[mask].min()) and info["depth_max"] == float(depth[mask].max())
+        assert info["scale"] == pytest.approx((info["depth_max"] - info["depth_min"]) / 65534, rel=1e-12)
+        raw = cv2.imread(str(tmp_path / "d.png"), cv2.IMREAD_UNCHANGED)
+        assert raw.dtype == np.uint16 and raw.shape == (24, 24)
+        # the full 16-bit range on the mask, 0 outside
+        assert raw[mask.numpy()].min() == 1 and raw[mask.numpy()].max() == 65535
+        assert np.all(raw[~mask.numpy()] == 0)
+        back = io.read_depth_png(tmp_path / "d.png", scale=info["scale"], offset=info["offset"])
+        assert back.depth.shape == (1, 24, 24) and back.depth.dtype == torch.float32
+        assert torch.equal(back.mask[0], mask)
+        assert bool((back.depth[0][~mask] == 0).all())
+        error = (back.depth[0].double() - depth.double())[mask].abs().max()
+        assert float(error) <= info["scale"] / 2 + 1e-6
+        # JSON keeps the floats exactly
+        assert json.loads(json.dumps(info)) == info
+
+    def test_background_values_are_ignored_and_constant_depth(self, tmp_path):
+        depth, mask, _ = _hemisphere(8, 4.0)
+        info = io.write_depth_png(tmp_path / "d.png", torch.where(mask, 2.5, float("nan")), mask)
+        assert info["scale"] == 0 and info["offset"] == 2.5
+        back = io.read_depth_png(tmp_path / "d.png", **{k: info[k] for k in ("scale", "offset")})
+        assert torch.equal(back.depth[0], torch.where(mask, 2.5, 0.0))
+        raw = cv2.imread(str(tmp_path / "d.png"), cv2.IMREAD_UNCHANGED)
+        assert set(np.unique(raw[mask.numpy()])) == {1}
+
+    def test_exception(self, tmp_path):
+        depth, mask, _ = _hemisphere(8, 4.0)
+        with pytest.raises(ValueError, match="must end in '.png'"):
+            io.write_depth_png(tmp_path / "d.tif", depth, mask)
+        with pytest.raises(ValueError, match="mask is empty"):
+            io.write_depth_png(tmp_path / "d.png", depth, torch.zeros_like(mask))
+        with pytest.raises(ValueError, match="same size"):
+            io.write_depth_png(tmp_path / "d.png", depth, mask[:4])
+        with pytest.raises(ValueError, match=r"depth must have shape \(1, H, W\) or \(H, W\)"):
+            io.write_depth_png(tmp_path / "d.png", depth.expand(3, 8, 8), mask)
+        bad = depth.clone()
+        bad[4, 4] = float("inf")
+        assert mask[4, 4]
+        with pytest.raises(ValueError, match="depth on the mask contains 1 NaN or infinite"):
+            io.write_depth_png(tmp_path / "d.png", bad, mask)
+        assert not (tmp_path / "d.png").exists()
+        _write_raw(tmp_path / "rgb.png", np.zeros((4, 4, 3), dtype=np.uint16))
+        with pytest.raises(ValueError, match="expected a 16-bit grey PNG"):
+            io.read_depth_png(tmp_path / "rgb.png", scale=1.0, offset=0.0)
+
+
+class TestWriteMesh:
+    @pytest.mark.parametrize("kind", io.MESH_FORMATS)
+    def test_round_trip_with_normals(self, tmp_path, kind):
+        depth, mask, normals = _hemisphere()
+        mesh = depth_to_mesh(depth, mask)
+        assert len(np.unique(mesh.faces)) == len(mesh.vertices)  # trimesh's OBJ reader drops unused vertices
+        vertex_normals = normals[:, mask].T  # the estimate at each vertex, unlike the faces' average
+        own = mesh.vertex_normals.copy()  # trimesh's, from the faces
+        assert not np.allclose(own, vertex_normals.numpy(), atol=1e-3)
+        io.write_mesh(tmp_path / f"mesh.{kind}", mesh, vertex_normals=vertex_normals)
+        np.testing.assert_array_equal(mesh.vertex_normals, own)  # the caller's mesh is left alone
+        back = _load_mesh(tmp_path / f"mesh.{kind}")
+        assert "vertex_normals" in back._cache  # read from the file, not recomputed
+        np.testing.assert_allclose(back.vertices, mesh.vertices, rtol=0, atol=1e-5)
+        np.testing.assert_array_equal(back.faces, mesh.faces)
+        np.testing.assert_allclose(back.vertex_normals, vertex_normals.numpy(), rtol=0, atol=1e-6)
+
+    @pytest.mark.parametrize("kind", ["ply", "glb"])
+    def test_unused_vertices_are_kept(self, tmp_path, kind):
+        depth, mask, normals = _hemisphere(12, 5.0)
+        mask[0, 0] = True  # an isolated pixel: a vertex without faces
+        mesh = depth_to_mesh(depth, mask)
+        vertex_normals = torch.nn.functional.normalize(normals[:, mask].T + torch.tensor([0.0, 0.0, 1e-3]), dim=1)
+        io.write_mesh(tmp_path / f"m.{kind}", mesh, vertex_normals=vertex_normals)
+        back = _load_mesh(tmp_path / f"m.{kind}")
+        assert len(back.vertices) == int(mask.sum())
+        np.testing.assert_allclose(back.vertex_normals, vertex_normals.numpy(), rtol=0, atol=1e-6)
+
+    def test_obj_text_and_default_normals(self, tmp_path):
+        depth, mask, _ = _hemisphere(8, 4.0)
+        mesh = depth_to_mesh(depth, mask)
+        io.write_mesh(tmp_path / "m.obj", mesh)  # trimesh's own normals (from the faces)
+        lines = (tmp_path / "m.obj").read_text().splitlines()
+        count = {kind: sum(line.startswith(kind + " ") for line in lines) for kind in ("v", "vn")}
+        assert count == {"v": len(mesh.vertices), "vn": len(mesh.vertices)}
+        assert not list(tmp_path.glob("*.mtl"))
+        np.testing.assert_allclose(_load_mesh(tmp_path / "m.obj").vertex_normals, mesh.vertex_normals, atol=1e-7)
+
+    def test_exception(self, tmp_path):
+        depth, mask, normals = _hemisphere(8, 4.0)
+        mesh = depth_to_mesh(depth, mask)
+        with pytest.raises(ValueError, match=r"path must end in .ply, .obj, .glb, got '.*m.stl'"):
+            io.write_mesh(tmp_path / "m.stl", mesh)
+        with pytest.raises(TypeError, match="trimesh.Trimesh"):
+            io.write_mesh(tmp_path / "m.ply", mesh.vertices)
+        with pytest.raises(ValueError, match=r"vertex_normals must have shape \(\d+, 3\)"):
+            io.write_mesh(tmp_path / "m.ply", mesh, vertex_normals=normals[:, mask])
+        bad = normals[:, mask].T.clone()
+        bad[0, 0] = float("nan")
+        with pytest.raises(ValueError, match="1 NaN or infinite"):
+            io.write_mesh(tmp_path / "m.ply", mesh, vertex_normals=bad)
+        assert not list(tmp_path.iterdir())
 
 
 class TestLighting:
