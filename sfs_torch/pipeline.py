@@ -50,7 +50,7 @@ from .reflectance_map import (
     refit_lighting,
 )
 from .refine import RefineConfig, check_refine_config, photometric_residual, refine_shape_and_lighting
-from .silhouette import silhouette_features
+from .silhouette import coarse_normals, silhouette_features
 from .texton import N_TEXTON_FILTERS, TextonConfig, texton_features
 
 __all__ = ["FeatureConfig", "TrainingConfig", "PipelineConfig", "Estimate", "estimate", "training_set", "pixel_features"]
@@ -410,7 +410,19 @@ def estimate(
                 _, sh[b], normals[b], confidence[b], forest = best
                 break
             best = (residual, sh[b].clone(), normals[b].clone(), confidence[b].clone(), forest)
-        if integrate == "conv":
+        prior = None
+        if cfg.reflectance_map.keep_prior:
+            with timer("prior check"):
+                prior = _better_prior(image_b[b : b + 1], mask_b[b : b + 1], normals[b : b + 1], sh[b : b + 1],
+                                      focal, principal_point, refit=lighting is None,
+                                      valid=cfg.reflectance_map.valid_refit)
+            if prior is not None:
+                normals[b], sh[b] = prior[0][0], prior[1][0]
+                # the prior carries no per-pixel confidence: the forest's median everywhere
+                confidence[b, 0][m] = confidence[b, 0][m].median()
+        if integrate == "conv" and prior is not None:
+            candidates.append(normals[b : b + 1].clone())
+        elif integrate == "conv":
             leaves = forest.predict_leaves(rows)
             generator = torch.Generator(device=rows.device).manual_seed(cfg.training.seed)
             samples = sample_vmf(leaves, cfg.training.conv_samples_per_tree, generator).flatten(1, 2)  # (N, S, 3)
@@ -452,6 +464,26 @@ def estimate(
         normals=out(normals), confidence=out(confidence), lighting=out(sh), depth=out(depth), mask=out(mask_b),
         timings=dict(timer.seconds),
     )
+
+
+def _better_prior(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, focal: Optional[float],
+                  principal_point: Optional[tuple], *, refit: bool, valid: bool) -> Optional[tuple]:
+    """The silhouette prior ``(normals, lighting)`` if it explains the image better than the forest's pair, else ``None``.
+
+    The prior is Eq. 10's coarse normal field with, for an estimated lighting, its own
+    :func:`refit_lighting` (for a given lighting, that lighting); both pairs are scored by
+    :func:`photometric_residual`. A blob-like object (a sphere above all) is the prior's
+    case: there the forest's colour cue only adds error.
+    """
+    coarse = coarse_normals(mask, focal=focal, principal_point=principal_point).to(normals.dtype)
+    prior_sh = refit_lighting(image, mask, coarse, valid=valid) if refit else sh
+    forest_score = photometric_residual(normals, sh, image, mask)
+    prior_score = photometric_residual(coarse, prior_sh, image, mask)
+    if bool(prior_score < forest_score):
+        log.info("keeping the silhouette prior: it explains the image better (residual %.4f vs %.4f)",
+                 float(prior_score), float(forest_score))
+        return coarse, prior_sh
+    return None
 
 
 def _to_camera(normals: Tensor, centroid: Tensor, focal: float, principal_point, rule: str) -> Tensor:

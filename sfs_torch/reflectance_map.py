@@ -54,6 +54,10 @@ class ReflectanceMapConfig:
             trained for it. 0 is the paper's method; each round costs one more forest.
         valid_refit: constrain those refits to a physically valid lighting
             (:func:`refit_lighting`'s ``valid``).
+        keep_prior: used by :func:`sfs_torch.estimate`: return the silhouette prior
+            (Eq. 10's coarse normals with their own refitted lighting, or with the given
+            lighting) instead of the forest's normals when it explains the image better
+            (:func:`sfs_torch.refine.photometric_residual`).
     """
 
     profile: str = "sphere"
@@ -64,6 +68,7 @@ class ReflectanceMapConfig:
     match_statistics: bool = True
     refine_rounds: int = 1
     valid_refit: bool = True
+    keep_prior: bool = True
 
 
 def hemisphere_directions(n: int, *, device=None, dtype=torch.float32) -> Tensor:

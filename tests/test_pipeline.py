@@ -12,6 +12,7 @@ from sfs_torch.metrics import lmse, normal_metrics
 from sfs_torch import pipeline
 from sfs_torch.pipeline import PipelineConfig, resolve_config, training_set
 from sfs_torch.reflectance_map import refit_lighting
+from sfs_torch.silhouette import coarse_normals
 
 # A small database and forest keep these end-to-end tests to seconds; the accuracy of
 # the default configuration is measured in benchmarks/end_to_end.py.
@@ -64,7 +65,8 @@ class TestEstimate:
 
     def test_perspective(self, scene):
         _, mask, sh, image = scene
-        forest_only = dict(TINY, refine={"when": "never"})  # the rotation rule, before any refinement
+        # the rotation rule of the forest's normals, before any refinement or prior check
+        forest_only = dict(TINY, refine={"when": "never"}, reflectance_map={"keep_prior": False})
         est = sfs_torch.estimate(image, mask, focal=60.0, lighting=sh, config=forest_only, progress=False)
         norms = est.normals.norm(dim=0)[mask[0]]
         assert torch.allclose(norms, torch.ones_like(norms), atol=1e-5)
@@ -89,7 +91,7 @@ class TestEstimate:
         image = (render_sh(normals[None], sh[None])[0] * mask).clamp(0, 1)
         errors = {}
         for rule in ("centroid", "pixel"):
-            config = dict(TINY, camera={"normal_rotation": rule})
+            config = dict(TINY, camera={"normal_rotation": rule}, reflectance_map={"keep_prior": False})
             est = sfs_torch.estimate(
                 image, mask, focal=50.0, principal_point=(24.0, 24.0), lighting=sh, config=config, progress=False
             )
@@ -180,20 +182,25 @@ class TestJitterOnlyForEstimatedLighting:
 
 
 class TestLightingRefinement:
+    # the refit rounds alone: on this sphere the prior check would replace their result
+    ROUNDS = dict(TINY, reflectance_map={"keep_prior": False})
+
     def test_refined_lighting_is_fitted_to_the_unrefined_normals(self, scene):
         _, mask, _, image = scene
-        plain = sfs_torch.estimate(image, mask, config=dict(TINY, reflectance_map={"refine_rounds": 0}), progress=False)
-        refined = sfs_torch.estimate(image, mask, config=TINY, progress=False)
+        plain = sfs_torch.estimate(image, mask, config=dict(TINY, reflectance_map={"refine_rounds": 0, "keep_prior": False}),
+                                   progress=False)
+        refined = sfs_torch.estimate(image, mask, config=self.ROUNDS, progress=False)
         expected = refit_lighting(image[None], mask[None], plain.normals[None])[0]
         assert torch.allclose(refined.lighting, expected, atol=1e-5)
         assert not torch.allclose(refined.lighting, plain.lighting, atol=1e-3)
 
     def test_a_refit_that_explains_the_image_worse_is_dropped(self, scene, monkeypatch):
         _, mask, _, image = scene
-        plain = sfs_torch.estimate(image, mask, config=dict(TINY, reflectance_map={"refine_rounds": 0}), progress=False)
+        plain = sfs_torch.estimate(image, mask, config=dict(TINY, reflectance_map={"refine_rounds": 0, "keep_prior": False}),
+                                   progress=False)
         # a refit gone wrong: three times too bright
         monkeypatch.setattr("sfs_torch.pipeline.refit_lighting", lambda im, m, n, valid: 3 * refit_lighting(im, m, n))
-        guarded = sfs_torch.estimate(image, mask, config=TINY, progress=False)
+        guarded = sfs_torch.estimate(image, mask, config=self.ROUNDS, progress=False)
         assert torch.equal(guarded.lighting, plain.lighting)
         assert torch.equal(guarded.normals, plain.normals) and torch.equal(guarded.confidence, plain.confidence)
 
@@ -207,6 +214,29 @@ class TestLightingRefinement:
         _, mask, _, image = scene
         with pytest.raises(ValueError, match="refine_rounds"):
             sfs_torch.estimate(image, mask, config=dict(TINY, reflectance_map={"refine_rounds": -1}), progress=False)
+
+
+class TestKeepPrior:
+    def test_a_sphere_keeps_its_silhouette_prior(self, scene):
+        # Eq. 10 is exact for a sphere: its coarse normals with their own lighting explain the
+        # image better than any forest, and the call returns them
+        normals, mask, sh, image = scene
+        on = sfs_torch.estimate(image, mask, config=dict(TINY, reflectance_map={"keep_prior": True}), progress=False)
+        off = sfs_torch.estimate(image, mask, config=dict(TINY, reflectance_map={"keep_prior": False}), progress=False)
+        error_on = float(normal_metrics(on.normals[None], normals[None], mask[None]).median[0])
+        error_off = float(normal_metrics(off.normals[None], normals[None], mask[None]).median[0])
+        assert error_on < 1.5 < error_off
+        assert torch.allclose(on.normals, coarse_normals(mask[None])[0], atol=1e-6)
+        refit = refit_lighting(image[None], mask[None], coarse_normals(mask[None]))[0]
+        assert torch.allclose(on.lighting, refit, atol=1e-5)
+        kappa = on.confidence[mask]
+        assert torch.allclose(kappa, kappa[0].expand_as(kappa))  # no per-pixel confidence for the prior
+
+    def test_a_given_lighting_is_kept_with_the_prior(self, scene):
+        normals, mask, sh, image = scene
+        est = sfs_torch.estimate(image, mask, lighting=sh, progress=False,
+                                 config=dict(TINY, reflectance_map={"keep_prior": True}, refine={"when": "never"}))
+        assert torch.equal(est.lighting, sh)
 
 
 class TestForestCache:
