@@ -742,6 +742,9 @@ class Integrator(nn.Module):
         principal_point: Optional[Sequence[float]] = None,
     ):
         super().__init__()
+        if method is None:
+            raise ValueError(f"method=None means no integration (the pipeline's default); an Integrator needs one of "
+                             f"{METHODS}")
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         self.method, self.max_iter, self.tol, self.min_nz = method, max_iter, tol, min_nz

@@ -302,6 +302,16 @@ class TestVMFForest:
         config = ForestConfig()
         assert VMFForest().n_trees == config.n_trees and VMFForest().max_depth == config.max_depth
 
+    def test_instantiate_from_config(self):
+        from dataclasses import asdict
+
+        from hydra.utils import instantiate
+
+        forest = instantiate(ForestConfig(n_trees=3, max_depth=5))
+        assert isinstance(forest, VMFForest) and (forest.n_trees, forest.max_depth) == (3, 5)
+        fields = {k: v for k, v in asdict(ForestConfig()).items() if k != "_target_"}
+        assert all(getattr(instantiate(ForestConfig()), k) == v for k, v in fields.items())
+
     def test_not_fitted(self):
         forest = VMFForest()
         with pytest.raises(NotFittedError, match="fit"):

@@ -201,6 +201,17 @@ class TestIntegrateL2:
         with pytest.raises(ValueError, match="method"):
             Integrator(method="nope")
 
+    def test_instantiate_from_config(self):
+        # the config's _target_ builds the module with Hydra, as a user's own config would
+        from hydra.utils import instantiate
+
+        z, n, mask = _batch(*gaussian_bump(32))
+        module = instantiate(IntegrabilityConfig(method="l1", l1_iter=3))
+        assert isinstance(module, Integrator) and module.l1_iter == 3
+        torch.testing.assert_close(module(n, mask).depth, integrate_normals(n, mask, method="l1", l1_iter=3).depth)
+        with pytest.raises(Exception, match="method=None means no integration"):
+            instantiate(IntegrabilityConfig())
+
 
 class TestMultigrid:
     def test_coarse_pseudo_inverse_of_a_degenerate_level_is_finite(self):
