@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Dict, Optional
+from typing import Dict, Mapping, Optional
 
 import numpy as np
 import torch
@@ -10,7 +10,7 @@ from torch import Tensor
 
 from .lighting import render_sphere
 
-__all__ = ["confidence_display_max", "normals_to_rgb", "summary_figure"]
+__all__ = ["confidence_display_max", "normals_to_rgb", "summary_figure", "error_map_figure"]
 
 
 def normals_to_rgb(normals: Tensor, mask: Optional[Tensor] = None) -> np.ndarray:
@@ -106,5 +106,83 @@ def summary_figure(
     if numbers:
         text = "   ".join(f"{k}: {v:.3g}" for k, v in numbers.items())
         fig.supxlabel(text, fontsize=9)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _object_box(mask: Tensor, margin: int = 4) -> tuple:
+    """Row and column slices around the ``(1, H, W)`` mask's object, widened by ``margin``."""
+    m = mask[0].cpu()
+    rows = torch.nonzero(m.any(1)).flatten()
+    cols = torch.nonzero(m.any(0)).flatten()
+    if rows.numel() == 0:
+        return slice(None), slice(None)
+    return (slice(max(int(rows[0]) - margin, 0), int(rows[-1]) + 1 + margin),
+            slice(max(int(cols[0]) - margin, 0), int(cols[-1]) + 1 + margin))
+
+
+def error_map_figure(
+    path: Path,
+    image: Tensor,
+    mask: Tensor,
+    normals: Mapping[str, Tensor],
+    *,
+    true_normals: Optional[Tensor] = None,
+    title: str = "",
+    max_error: float = 45.0,
+) -> None:
+    """Write one row of panels as in the paper's Fig. 7 and 9: the input, then each
+    method's angular-error map with its median error below it.
+
+    Without ``true_normals`` each method's normal map is shown instead (no error to map).
+    The panels are cropped to the object.
+
+    Args:
+        path: the PNG to write.
+        image: ``(3, H, W)`` linear RGB; mask ``(1, H, W)`` bool.
+        normals: method name -> ``(3, H, W)`` estimated normals, in panel order.
+        true_normals: ``(3, H, W)`` ground truth, or ``None``.
+        max_error: top of the error colour scale, degrees.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .metrics import angular_error, normal_metrics
+
+    mask = mask.detach().cpu().bool()
+    rows, cols = _object_box(mask)
+    background = ~mask[0].numpy()
+    shown = _display(image)
+    shown[background] = 1.0
+    count = len(normals) + 1
+    fig, axes = plt.subplots(1, count, figsize=(2.3 * count + (0.8 if true_normals is not None else 0), 2.9),
+                             squeeze=False, layout="constrained")
+    panels = axes[0]
+    for ax in panels:
+        ax.set_xticks([])
+        ax.set_yticks([])
+        for spine in ax.spines.values():
+            spine.set_visible(False)
+    panels[0].imshow(shown[rows, cols])
+    panels[0].set_title("input", fontsize=10)
+    scale = None
+    for ax, (name, est) in zip(panels[1:], normals.items()):
+        est = est.detach().float().cpu()
+        ax.set_title(name, fontsize=10)
+        if true_normals is None:
+            ax.imshow(normals_to_rgb(est, mask)[rows, cols])
+            ax.set_xlabel("normals (no ground truth)", fontsize=9)
+            continue
+        gt = true_normals.detach().float().cpu()
+        err = _outside_as_nan(angular_error(est, gt, mask)[0], mask)
+        median = float(normal_metrics(est, gt, mask).median)
+        scale = ax.imshow(err[rows, cols], cmap="inferno", vmin=0, vmax=max_error)
+        ax.set_xlabel(f"median {median:.1f}\N{DEGREE SIGN}", fontsize=10)
+    if scale is not None:
+        fig.colorbar(scale, ax=list(panels[1:]), fraction=0.046, pad=0.02, label="angular error (deg)")
+    if title:
+        fig.suptitle(title, fontsize=11)
     fig.savefig(path, dpi=110)
     plt.close(fig)
