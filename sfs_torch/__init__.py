@@ -15,11 +15,12 @@ modules follow the paper's pipeline (Fig. 2):
 - :mod:`sfs_torch.lighting`, :mod:`sfs_torch.metrics`, :mod:`sfs_torch.io`: SH
   lighting, evaluation metrics, files
 - :mod:`sfs_torch.pipeline`: :func:`estimate`, the whole method
+- :mod:`sfs_torch.model`: :class:`ShapeFromShading`, the whole method as an ``nn.Module``
 """
 from importlib import import_module
 
 __version__ = "0.1.0"
-__all__ = ["estimate", "Estimate", "PipelineConfig", "__version__"]
+__all__ = ["estimate", "Estimate", "PipelineConfig", "ShapeFromShading", "__version__"]
 
 
 def __getattr__(name: str):
@@ -28,4 +29,6 @@ def __getattr__(name: str):
     # policy before torch starts (docs/forest.md), which an eager import would pre-empt.
     if name in ("estimate", "Estimate", "PipelineConfig"):
         return getattr(import_module(".pipeline", __name__), name)
+    if name == "ShapeFromShading":
+        return getattr(import_module(".model", __name__), name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -6,13 +6,23 @@ principal point is the image centre ``(W / 2, H / 2)``.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Optional, Sequence, Tuple
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
-__all__ = ["CameraConfig", "pixel_grid", "perspective_rotation", "rotate_normals_to_camera", "centroid_rotation"]
+from ._checks import check_shape, from_batch, to_batch
+
+__all__ = [
+    "CameraConfig",
+    "CameraRotation",
+    "pixel_grid",
+    "perspective_rotation",
+    "rotate_normals_to_camera",
+    "centroid_rotation",
+]
 
 
 @dataclass
@@ -34,6 +44,17 @@ class CameraConfig:
     normal_rotation: str = "centroid"
 
 
+def _positive_focal(focal) -> float:
+    """``focal`` as a float, or ``ValueError`` unless it is a finite positive number."""
+    try:
+        value = float(focal)
+    except (TypeError, ValueError):
+        raise ValueError(f"focal must be a positive focal length in pixels, got {focal!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"focal must be a positive focal length in pixels, got {focal!r}")
+    return value
+
+
 def pixel_grid(
     height: int,
     width: int,
@@ -45,7 +66,8 @@ def pixel_grid(
     """Image-plane coordinates ``(u, v)`` of every pixel centre.
 
     Args:
-        height, width: image size.
+        height: image height in pixels.
+        width: image width in pixels.
         principal_point: ``(cx, cy)`` in pixels; default ``(width / 2, height / 2)``.
 
     Returns:
@@ -70,7 +92,8 @@ def perspective_rotation(u: Tensor, v: Tensor, focal: float) -> Tensor:
     exact off the image axes too.
 
     Args:
-        u, v: image-plane coordinates in pixels, any matching shape ``(*)``.
+        u: image-plane coordinate (right) in pixels, any shape ``(*)``.
+        v: image-plane coordinate (up) in pixels, the shape of ``u``.
         focal: focal length in pixels.
 
     Returns:
@@ -93,17 +116,25 @@ def rotate_normals_to_camera(
     """Rotate orthographic-frame normals by each pixel's perspective rotation (Sec. 8).
 
     Args:
-        normals: :math:`(B, 3, H, W)` normals predicted as if the camera were orthographic.
+        normals: :math:`(B, 3, H, W)` (or :math:`(3, H, W)`) normals predicted as if the
+            camera were orthographic.
         focal: focal length in pixels.
         principal_point: ``(cx, cy)``; default image centre.
 
     Returns:
-        :math:`(B, 3, H, W)` normals in the perspective camera frame; zero pixels stay zero.
+        :math:`(B, 3, H, W)` (or :math:`(3, H, W)`) normals in the perspective camera
+        frame; zero pixels stay zero.
+
+    Raises:
+        ValueError: ``normals`` is not :math:`(B, 3, H, W)` floating point, or ``focal`` is
+            not positive.
     """
-    _, _, h, w = normals.shape
-    uv = pixel_grid(h, w, principal_point, device=normals.device, dtype=normals.dtype)
+    batch, single = to_batch(normals, "normals", 3)
+    check_shape(batch, "normals", "B 3 H W")
+    _, _, h, w = batch.shape
+    uv = pixel_grid(h, w, principal_point, device=batch.device, dtype=batch.dtype)
     rot = perspective_rotation(uv[0], uv[1], focal)  # (H, W, 3, 3)
-    return torch.einsum("hwij,bjhw->bihw", rot, normals)
+    return from_batch(torch.einsum("hwij,bjhw->bihw", rot, batch), single)
 
 
 def centroid_rotation(mask: Tensor, focal: float, principal_point: Optional[Sequence[float]] = None) -> Tensor:
@@ -122,3 +153,35 @@ def centroid_rotation(mask: Tensor, focal: float, principal_point: Optional[Sequ
     u = (uv[0] * m).flatten(1).sum(1) / count
     v = (uv[1] * m).flatten(1).sum(1) / count
     return perspective_rotation(u, v, focal)
+
+
+class CameraRotation(nn.Module):
+    """Rotate orthographic-frame normals into a perspective camera's frame, per pixel
+    (module form of :func:`rotate_normals_to_camera`, paper Sec. 8).
+
+    Stores the camera; the per-pixel rotations depend on the input's size, so they are
+    built in ``forward`` on the input's device and dtype (no buffer).
+
+    Args:
+        focal: focal length in pixels (positive).
+        principal_point: ``(cx, cy)`` in pixels; default the image centre.
+
+    ``forward(normals)``: :math:`(B, 3, H, W)` (or :math:`(3, H, W)`) normals; returns the
+    same shape.
+
+    Example:
+        >>> n = torch.zeros(1, 3, 2, 2); n[:, 2] = 1
+        >>> CameraRotation(100.0)(n).shape
+        torch.Size([1, 3, 2, 2])
+    """
+
+    def __init__(self, focal: float, principal_point: Optional[Sequence[float]] = None):
+        super().__init__()
+        self.focal = _positive_focal(focal)
+        self.principal_point = principal_point
+
+    def forward(self, normals: Tensor) -> Tensor:
+        return rotate_normals_to_camera(normals, self.focal, self.principal_point)
+
+    def extra_repr(self) -> str:
+        return f"focal={self.focal}, principal_point={self.principal_point}"

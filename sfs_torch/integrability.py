@@ -40,12 +40,13 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ._checks import check_finite, check_mask, check_same_size, check_shape, from_batch, to_batch
-from .camera import pixel_grid
+from .camera import _positive_focal, pixel_grid
 
 __all__ = [
     "IntegrabilityConfig",
     "Surface",
     "Integrator",
+    "DepthToNormals",
     "integrate_normals",
     "integrate_convex",
     "depth_to_normals",
@@ -419,9 +420,11 @@ def integrate_normals(
             weights can cut a component apart, leaving the pieces' offsets arbitrary.
         focal: focal length in pixels (perspective, log-depth); ``None``: orthographic.
         principal_point: ``(cx, cy)`` in pixels; default image centre.
-        max_iter, tol: conjugate-gradient iterations and relative residual per solve.
+        max_iter: conjugate-gradient iterations per solve.
+        tol: relative residual of each conjugate-gradient solve.
         min_nz: normals more grazing than this cosine to the view ray are clamped.
-        l1_iter, l1_delta: IRLS rounds and smoothing of the L1 variant.
+        l1_iter: IRLS rounds of the L1 variant.
+        l1_delta: smoothing of the L1 variant.
         conv_options: ``conv_iter``, ``conv_prior`` for ``"conv"``.
 
     Returns:
@@ -526,7 +529,8 @@ def integrate_convex(
         candidates: unit normals :math:`(B, S, 3, H, W)` or :math:`(S, 3, H, W)`.
         mask: :math:`(B, 1, H, W)` bool or 0/1.
         weights: per-pixel confidence :math:`(B, 1, H, W)`.
-        focal, principal_point: camera, as in :func:`integrate_normals`.
+        focal: camera, as in :func:`integrate_normals`.
+        principal_point: camera, as in :func:`integrate_normals`.
         conv_iter: FISTA steps on the weights;
         conv_prior: pull towards the candidates' mean (relative to edge weights).
 
@@ -627,7 +631,8 @@ def depth_to_normals(
         depth: :math:`(B, 1, H, W)`; orthographic: height towards the viewer in pixels;
             perspective: positive distance along the optical axis (scale irrelevant).
         mask: :math:`(B, 1, H, W)` bool or 0/1.
-        focal, principal_point: camera; ``focal=None`` is orthographic.
+        focal: focal length in pixels; ``None`` is orthographic.
+        principal_point: ``(cx, cy)`` in pixels; default image centre.
 
     Returns:
         :math:`(B, 3, H, W)` camera-frame unit normals (``n_z > 0``), 0 outside the mask.
@@ -760,3 +765,34 @@ class Integrator(nn.Module):
                                     conv_prior=self.conv_prior, **common)
         return integrate_normals(normals, mask, method=self.method, l1_iter=self.l1_iter,
                                  l1_delta=self.l1_delta, **common)
+
+
+class DepthToNormals(nn.Module):
+    """Unit normals of depth maps (module form of :func:`depth_to_normals`); stores the camera.
+
+    Differentiable in ``depth`` (the finite differences depend on the mask alone).
+
+    Args:
+        focal: focal length in pixels, ``None`` for an orthographic camera (``depth`` is
+            then the height towards the viewer; with ``focal``, the positive distance
+            along the optical axis).
+        principal_point: ``(cx, cy)`` in pixels; default the image centre.
+
+    ``forward(depth, mask)``: depth and mask :math:`(B, 1, H, W)` (or :math:`(1, H, W)`,
+    :math:`(H, W)`); returns :math:`(B, 3, H, W)` unit normals, 0 outside the mask.
+
+    Example:
+        >>> DepthToNormals()(torch.zeros(1, 1, 4, 4), torch.ones(1, 1, 4, 4)).shape
+        torch.Size([1, 3, 4, 4])
+    """
+
+    def __init__(self, focal: Optional[float] = None, principal_point: Optional[Sequence[float]] = None):
+        super().__init__()
+        self.focal = None if focal is None else _positive_focal(focal)
+        self.principal_point = principal_point
+
+    def forward(self, depth: Tensor, mask: Tensor) -> Tensor:
+        return depth_to_normals(depth, mask, self.focal, self.principal_point)
+
+    def extra_repr(self) -> str:
+        return f"focal={self.focal}, principal_point={self.principal_point}"

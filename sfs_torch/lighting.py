@@ -28,6 +28,8 @@ __all__ = [
     "SH_CONSTANTS",
     "SphereNormals",
     "SHRenderer",
+    "SHRotation",
+    "SHFit",
     "sh_basis",
     "sh_basis_vectors",
     "render_sh",
@@ -204,6 +206,8 @@ def fit_sh(
     check_same_size(normals, "normals", mask, "mask")
     check_finite(normals, "normals")
     check_finite(colours, "colours")
+    if nonnegative is not None:
+        check_shape(nonnegative, "nonnegative", "M 3")
     w = mask.to(normals.dtype)
     if weights is not None:
         check_shape(weights, "weights", "B 1 H W")
@@ -386,3 +390,68 @@ class SHRenderer(nn.Module):
     def forward(self, normals: Tensor) -> Tensor:
         return render_sh(normals, self.sh)
 
+
+
+class SHRotation(nn.Module):
+    """Rotate lightings by one fixed rotation (module form of :func:`rotate_sh`).
+
+    The rotation is a buffer, like :class:`SHRenderer`'s lighting: it is the fixed part
+    of the operation (e.g. a camera's or an object's :func:`sfs_torch.camera.centroid_rotation`),
+    so it moves with ``.to(device)`` and is saved in the ``state_dict``; the lightings
+    are the input. For a rotation that changes every call, use :func:`rotate_sh`.
+
+    Args:
+        rotation: rotation matrices :math:`(3, 3)` (shared by the batch) or :math:`(B, 3, 3)`.
+
+    ``forward(sh)``: lightings :math:`(B, 3, 9)` (or :math:`(3, 9)`); returns the rotated
+    lightings, which light ``R n`` as the input lights ``n``, of shape ``sh`` broadcast
+    with ``rotation``.
+
+    Example:
+        >>> SHRotation(torch.eye(3))(torch.ones(2, 3, 9)).shape
+        torch.Size([2, 3, 9])
+    """
+
+    def __init__(self, rotation: Tensor):
+        super().__init__()
+        if not isinstance(rotation, Tensor):
+            raise TypeError(
+                f"rotation must be a torch.Tensor of shape (3, 3) or (B, 3, 3), got {type(rotation).__name__}"
+            )
+        if rotation.ndim not in (2, 3) or rotation.shape[-2:] != (3, 3) or not rotation.is_floating_point():
+            raise ValueError(
+                f"rotation must be a floating-point tensor of shape (3, 3) or (B, 3, 3), got {tuple(rotation.shape)} "
+                f"{rotation.dtype}"
+            )
+        self.register_buffer("rotation", rotation)
+
+    def forward(self, sh: Tensor) -> Tensor:
+        return rotate_sh(sh, self.rotation)
+
+
+class SHFit(nn.Module):
+    """Fit SH lighting to an image of known normals (module form of :func:`fit_sh`).
+
+    Args:
+        nonnegative: optional directions :math:`(M, 3)` on which the fitted shading must
+            not be negative (e.g. :func:`sfs_torch.reflectance_map.hemisphere_directions`);
+            a buffer, ``None`` for the unconstrained least squares.
+
+    ``forward(normals, colours, mask, weights=None)``: normals and colours
+    :math:`(B, 3, H, W)`, mask and weights :math:`(B, 1, H, W)`; returns :math:`(B, 3, 9)`.
+
+    Example:
+        >>> n = torch.zeros(1, 3, 4, 4); n[:, 2] = 1
+        >>> SHFit()(n, torch.ones(1, 3, 4, 4), torch.ones(1, 1, 4, 4, dtype=torch.bool)).shape
+        torch.Size([1, 3, 9])
+    """
+
+    def __init__(self, nonnegative: Optional[Tensor] = None):
+        super().__init__()
+        if nonnegative is not None:
+            check_shape(nonnegative, "nonnegative", "M 3")
+            check_finite(nonnegative, "nonnegative")
+        self.register_buffer("nonnegative", nonnegative)
+
+    def forward(self, normals: Tensor, colours: Tensor, mask: Tensor, weights: Optional[Tensor] = None) -> Tensor:
+        return fit_sh(normals, colours, mask, weights, nonnegative=self.nonnegative)

@@ -16,17 +16,26 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from collections.abc import Mapping
+from typing import Optional, Sequence, Union
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from ._checks import check_finite, check_mask, check_same_size, check_shape
-from .camera import centroid_rotation
+from .camera import _positive_focal, centroid_rotation
 from .lighting import fit_sh, fit_sh_vectors, rotate_sh, sh_basis_vectors
 from .silhouette import silhouette_distances
 
-__all__ = ["ReflectanceMapConfig", "sphere_mapping", "estimate_lighting", "refit_lighting", "hemisphere_directions"]
+__all__ = [
+    "ReflectanceMapConfig",
+    "LightingEstimator",
+    "LightingRefit",
+    "sphere_mapping",
+    "estimate_lighting",
+    "refit_lighting",
+    "hemisphere_directions",
+]
 
 PROFILES = ("sphere", "linear")
 # directions of the visible hemisphere on which a refitted lighting must shade >= 0
@@ -201,3 +210,82 @@ def _match_statistics(sh: Tensor, pixel_dirs: Tensor, pixel_colours: Tensor) -> 
     matched = sh * gain[:, None]
     matched[:, 0] = matched[:, 0] + offset / sh_basis_vectors(pixel_dirs[:1])[0, 0]
     return matched
+
+
+class LightingEstimator(nn.Module):
+    """Lighting from one image and its silhouette (module form of :func:`estimate_lighting`).
+
+    Stores the options: a :class:`ReflectanceMapConfig` and, like
+    :class:`sfs_torch.integrability.Integrator`, the camera. Of the config only the
+    fields that :func:`estimate_lighting` reads matter here (``profile``,
+    ``n_directions``, ``knn_fraction``, ``min_k``, ``max_pixels``,
+    ``match_statistics``); ``refine_rounds``, ``valid_refit`` and ``keep_prior`` are
+    read by :func:`sfs_torch.estimate` only.
+
+    Differentiable in ``image``: which pixels are averaged for a hemisphere direction
+    (the k nearest, Eq. 9) depends on the mask alone, and the rest is linear least
+    squares and the mean / std matching. Not in the mask (boolean).
+
+    Args:
+        config: a :class:`ReflectanceMapConfig`, a mapping of its fields, or ``None``
+            for the defaults.
+        focal: focal length in pixels (Sec. 8: the estimate is rotated by the rotation of
+            the object's centroid); ``None`` for an orthographic camera.
+        principal_point: ``(cx, cy)`` in pixels; default the image centre.
+
+    ``forward(image, mask)``: image :math:`(B, 3, H, W)` linear RGB, mask
+    :math:`(B, 1, H, W)` bool; returns :math:`(B, 3, 9)` SH lighting in the camera frame.
+    """
+
+    def __init__(
+        self,
+        config: Union[None, ReflectanceMapConfig, Mapping] = None,
+        *,
+        focal: Optional[float] = None,
+        principal_point: Optional[Sequence[float]] = None,
+    ):
+        super().__init__()
+        if config is None:
+            config = ReflectanceMapConfig()
+        elif isinstance(config, Mapping):
+            try:
+                config = ReflectanceMapConfig(**config)
+            except TypeError as err:
+                raise ValueError(f"config does not fit ReflectanceMapConfig: {err}") from None
+        elif not isinstance(config, ReflectanceMapConfig):
+            raise TypeError(f"config must be a ReflectanceMapConfig, a mapping or None, got {type(config).__name__}")
+        if config.profile not in PROFILES:
+            raise ValueError(f"config.profile must be one of {PROFILES}, got {config.profile!r}")
+        self.config = config
+        self.focal = None if focal is None else _positive_focal(focal)
+        self.principal_point = principal_point
+
+    def forward(self, image: Tensor, mask: Tensor) -> Tensor:
+        return estimate_lighting(
+            image, mask, focal=self.focal, principal_point=self.principal_point, config=self.config
+        )
+
+    def extra_repr(self) -> str:
+        return f"config={self.config}, focal={self.focal}, principal_point={self.principal_point}"
+
+
+class LightingRefit(nn.Module):
+    """Lighting that best shades given normals into the image (module form of :func:`refit_lighting`).
+
+    Args:
+        valid: constrain the fit to a physically valid lighting (non-negative shading on
+            the visible hemisphere), as :func:`refit_lighting` does by default.
+
+    ``forward(image, mask, normals)``: image and normals :math:`(B, 3, H, W)`, mask
+    :math:`(B, 1, H, W)` bool; returns :math:`(B, 3, 9)`.
+    """
+
+    def __init__(self, valid: bool = True):
+        super().__init__()
+        self.valid = bool(valid)
+
+    def forward(self, image: Tensor, mask: Tensor, normals: Tensor) -> Tensor:
+        return refit_lighting(image, mask, normals, valid=self.valid)
+
+    def extra_repr(self) -> str:
+        return f"valid={self.valid}"

@@ -28,7 +28,7 @@ from typing import Optional, Tuple
 import torch
 import torch.nn.functional as F
 from kornia.color import linear_rgb_to_rgb, rgb_to_lab
-from torch import Tensor
+from torch import Tensor, nn
 
 from ._checks import check_finite, check_mask, check_same_size, check_shape, from_batch, to_batch
 
@@ -39,7 +39,11 @@ __all__ = [
     "texton_filter_bank",
     "linear_rgb_to_lab",
     "texton_features",
+    "LinearRGBToLab",
+    "TextonFeatures",
 ]
+
+PADDINGS = ("same", "valid")
 
 _GAUSS_SIGMAS = (1.0, 2.0, 4.0)
 _LOG_SIGMAS = (1.0, 2.0, 4.0, 8.0)
@@ -97,6 +101,16 @@ def _filter_bank(kernel_size: int, device: torch.device, dtype: torch.dtype) -> 
     return bank.to(device=device, dtype=dtype)
 
 
+def _check_kernel_size(kernel_size: int) -> None:
+    if not isinstance(kernel_size, int) or kernel_size < 1 or kernel_size % 2 == 0:
+        raise ValueError(f"kernel_size must be a positive odd integer, got {kernel_size!r}")
+
+
+def _check_padding(padding: str) -> None:
+    if padding not in PADDINGS:
+        raise ValueError(f"padding must be 'same' or 'valid', got {padding!r}")
+
+
 def texton_filter_bank(
     kernel_size: int = 5, *, device: Optional[torch.device] = None, dtype: torch.dtype = torch.float32
 ) -> Tensor:
@@ -107,7 +121,8 @@ def texton_filter_bank(
 
     Args:
         kernel_size: odd filter support (5 in the paper).
-        device, dtype: of the returned weights.
+        device: of the returned weights.
+        dtype: of the returned weights.
 
     Returns:
         :math:`(17, 3, k, k)` weights; input channels are L, a, b.
@@ -116,8 +131,7 @@ def texton_filter_bank(
         >>> texton_filter_bank().shape
         torch.Size([17, 3, 5, 5])
     """
-    if not isinstance(kernel_size, int) or kernel_size < 1 or kernel_size % 2 == 0:
-        raise ValueError(f"kernel_size must be a positive odd integer, got {kernel_size!r}")
+    _check_kernel_size(kernel_size)
     return _filter_bank(kernel_size, torch.device("cpu") if device is None else torch.device(device), dtype)
 
 
@@ -157,8 +171,7 @@ def texton_features(
     Returns:
         :math:`(B, 17, H', W')` responses (same dtype and device as ``image``).
     """
-    if padding not in ("same", "valid"):
-        raise ValueError(f"padding must be 'same' or 'valid', got {padding!r}")
+    _check_padding(padding)
     batch, single = to_batch(image, "image", 3)
     check_shape(batch, "image", "B 3 H W")
     check_finite(batch, "image")
@@ -175,3 +188,50 @@ def texton_features(
     lab = rgb_to_lab(linear_rgb_to_rgb(batch))
     out = F.conv2d(lab, weights, padding=kernel_size // 2 if padding == "same" else 0)
     return from_batch(out, single)
+
+
+class LinearRGBToLab(nn.Module):
+    r"""CIE L*a*b* of a linear RGB image (module form of :func:`linear_rgb_to_lab`).
+
+    No options and no state; ``forward(image)`` takes :math:`(B, 3, H, W)` (or
+    :math:`(3, H, W)`) linear RGB and returns Lab of the same shape, dtype and device.
+
+    Example:
+        >>> LinearRGBToLab()(torch.zeros(1, 3, 2, 2)).shape
+        torch.Size([1, 3, 2, 2])
+    """
+
+    def forward(self, image: Tensor) -> Tensor:
+        return linear_rgb_to_lab(image)
+
+
+class TextonFeatures(nn.Module):
+    r"""The 17 texton responses of a linear RGB image (module form of :func:`texton_features`).
+
+    Stores ``kernel_size`` and ``padding`` (checked here, as the function checks them);
+    the filter bank is not a buffer: :func:`texton_filter_bank` builds it on the input's
+    device and dtype at the first call and caches it there.
+
+    Args:
+        kernel_size: odd filter support (:attr:`TextonConfig.kernel_size`, 5 in the paper).
+        padding: ``"same"`` or ``"valid"``.
+
+    ``forward(image, mask=None)``: image :math:`(B, 3, H, W)` (or :math:`(3, H, W)`),
+    optional mask :math:`(B, 1, H, W)`; returns :math:`(B, 17, H', W')`.
+
+    Example:
+        >>> TextonFeatures()(torch.rand(2, 3, 8, 8)).shape
+        torch.Size([2, 17, 8, 8])
+    """
+
+    def __init__(self, kernel_size: int = TextonConfig.kernel_size, padding: str = "same"):
+        super().__init__()
+        _check_kernel_size(kernel_size)
+        _check_padding(padding)
+        self.kernel_size, self.padding = kernel_size, padding
+
+    def forward(self, image: Tensor, mask: Optional[Tensor] = None) -> Tensor:
+        return texton_features(image, mask, kernel_size=self.kernel_size, padding=self.padding)
+
+    def extra_repr(self) -> str:
+        return f"kernel_size={self.kernel_size}, padding={self.padding!r}"

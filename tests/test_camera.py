@@ -1,7 +1,20 @@
 import pytest
 import torch
 
-from sfs_torch.camera import centroid_rotation, perspective_rotation, pixel_grid, rotate_normals_to_camera
+from sfs_torch.camera import (
+    CameraRotation,
+    centroid_rotation,
+    perspective_rotation,
+    pixel_grid,
+    rotate_normals_to_camera,
+)
+
+
+def random_normals(b, h, w, dtype=torch.float64, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    n = torch.randn(b, 3, h, w, generator=g, dtype=dtype)
+    n[:, 2] = n[:, 2].abs()
+    return n / n.norm(dim=1, keepdim=True)
 
 
 class TestPixelGrid:
@@ -58,3 +71,48 @@ class TestRotateNormalsToCamera:
         mask[0, 0, 0, 8] = True  # top-right pixel: u = 4, v = 4
         rot = centroid_rotation(mask, 10.0)
         assert torch.allclose(rot, perspective_rotation(torch.tensor([4.0]), torch.tensor([4.0]), 10.0))
+
+
+class TestCameraRotation:
+    def test_smoke(self, device, dtype):
+        n = torch.zeros(1, 3, 4, 6, device=device, dtype=dtype)
+        n[:, 2] = 1
+        module = CameraRotation(12.0, principal_point=(2.0, 1.0))
+        out = module(n)
+        assert out.shape == (1, 3, 4, 6) and out.dtype == dtype and out.device.type == device.type
+        # the optical axis turns towards the camera centre: (-u, -v, f) / |.|
+        uv = pixel_grid(4, 6, (2.0, 1.0), device=device, dtype=dtype)
+        target = torch.stack([-uv[0], -uv[1], torch.full_like(uv[0], 12.0)])
+        torch.testing.assert_close(out[0], target / target.norm(dim=0))
+        assert list(module.buffers()) == [] and "focal=12.0" in repr(module)
+
+    @pytest.mark.parametrize("batch", [1, 3])
+    def test_cardinality(self, batch, device):
+        n = random_normals(batch, 5, 7).to(device)
+        out = CameraRotation(20.0)(n)
+        assert out.shape == (batch, 3, 5, 7)
+        torch.testing.assert_close(out.norm(dim=1), torch.ones(batch, 5, 7, dtype=n.dtype, device=device))
+        torch.testing.assert_close(CameraRotation(20.0)(n[0]), out[0])  # unbatched (3, H, W)
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="focal"):
+            CameraRotation(0.0)
+        with pytest.raises(ValueError, match="focal"):
+            CameraRotation(None)
+        with pytest.raises(ValueError, match="normals"):
+            CameraRotation(10.0)(torch.zeros(1, 2, 4, 4))
+        with pytest.raises(ValueError, match="normals"):
+            rotate_normals_to_camera(torch.zeros(4, 4), 10.0)
+
+    def test_gradcheck(self):
+        n = random_normals(1, 3, 4).requires_grad_()
+        assert torch.autograd.gradcheck(CameraRotation(8.0, (1.0, 2.0)), (n,), fast_mode=True)
+
+    def test_module(self, device, dtype):
+        n = random_normals(2, 6, 5, dtype).to(device)
+        torch.testing.assert_close(CameraRotation(30.0, (2.0, 4.0))(n), rotate_normals_to_camera(n, 30.0, (2.0, 4.0)))
+
+    def test_dynamo(self):
+        n = random_normals(2, 6, 5)
+        compiled = torch.compile(CameraRotation(30.0), backend="eager")
+        torch.testing.assert_close(compiled(n), rotate_normals_to_camera(n, 30.0))

@@ -6,6 +6,7 @@ import torch
 
 from sfs_torch.camera import pixel_grid
 from sfs_torch.integrability import (
+    DepthToNormals,
     IntegrabilityConfig,
     Integrator,
     Surface,
@@ -342,3 +343,53 @@ class TestDepthToMesh:
     def test_exception(self):
         with pytest.raises(ValueError, match="depth and mask"):
             depth_to_mesh(torch.zeros(2, 4, 4), torch.ones(4, 4))
+
+
+class TestDepthToNormalsModule:
+    def test_smoke(self, device, dtype):
+        z, n, mask = _batch(*sphere_cap(24, dtype, device))
+        module = DepthToNormals()
+        out = module(z, mask)
+        assert out.shape == (1, 3, 24, 24) and out.dtype == dtype and out.device.type == device.type
+        assert float(angular_error(out, n, mask).median()) < 0.5
+        assert list(module.buffers()) == [] and "focal=None" in repr(module)
+
+    @pytest.mark.parametrize("batch", [1, 3])
+    def test_cardinality(self, batch, device):
+        z, _, mask = sphere_cap(16, F64, device)
+        depth = torch.stack([z * (1 + b) for b in range(batch)])[:, None]
+        masks = mask[None, None].expand(batch, -1, -1, -1)
+        assert DepthToNormals()(depth, masks).shape == (batch, 3, 16, 16)
+        assert DepthToNormals(focal=40.0)(depth + 50.0, masks).shape == (batch, 3, 16, 16)
+        assert DepthToNormals()(z, mask).shape == (3, 16, 16)  # unbatched (H, W)
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="focal"):
+            DepthToNormals(focal=-3.0)
+        with pytest.raises(ValueError, match="depth"):
+            DepthToNormals()(torch.zeros(1, 2, 4, 4), torch.ones(1, 1, 4, 4))
+        with pytest.raises(ValueError, match="depth"):
+            DepthToNormals(focal=10.0)(torch.zeros(1, 1, 4, 4), torch.ones(1, 1, 4, 4))  # not positive
+        with pytest.raises(ValueError, match="mask"):
+            DepthToNormals()(torch.zeros(1, 1, 4, 4), torch.ones(1, 1, 4, 5))
+
+    @pytest.mark.parametrize("focal", [None, 30.0])
+    def test_gradcheck(self, focal):
+        g = torch.Generator().manual_seed(2)
+        depth = (5.0 + torch.rand(1, 1, 5, 6, generator=g, dtype=F64)).requires_grad_()
+        mask = torch.ones(1, 1, 5, 6, dtype=torch.bool)
+        mask[0, 0, 0, :2] = False
+        module = DepthToNormals(focal=focal)
+        assert torch.autograd.gradcheck(lambda d: module(d, mask), (depth,), fast_mode=True)
+
+    def test_module(self, device, dtype):
+        depth, _, mask = perspective_sphere(32, 80.0, dtype)
+        depth, mask = depth[None, None].to(device), mask[None, None].to(device)
+        expected = depth_to_normals(depth, mask, 80.0, (15.0, 17.0))
+        torch.testing.assert_close(DepthToNormals(80.0, (15.0, 17.0))(depth, mask), expected)
+        torch.testing.assert_close(DepthToNormals()(depth, mask), depth_to_normals(depth, mask))
+
+    def test_dynamo(self):
+        z, _, mask = _batch(*sphere_cap(16))
+        compiled = torch.compile(DepthToNormals(), backend="eager")
+        torch.testing.assert_close(compiled(z, mask), depth_to_normals(z, mask))

@@ -4,7 +4,9 @@ import pytest
 import torch
 
 from sfs_torch.lighting import (
+    SHFit,
     SHRenderer,
+    SHRotation,
     fit_sh,
     irradiance_to_sh,
     matrix_to_sh,
@@ -249,3 +251,127 @@ class TestSphere:
         # R&H: Grace Cathedral L00 red is 0.79, rendered irradiance constant term c4 * L00 / pi.
         assert lights["grace_cathedral"][0, 0] == pytest.approx(0.79)
         assert lights["grace_cathedral"][0, 1] == pytest.approx(0.39 * 2 / 3)
+
+
+class TestSHRotation:
+    def test_smoke(self, device, dtype):
+        rot = random_rotation(dtype=dtype).to(device)
+        module = SHRotation(rot)
+        out = module(random_sh(2, dtype).to(device))
+        assert out.shape == (2, 3, 9) and out.dtype == dtype and out.device.type == device.type
+        # the rotation is a buffer: it is in the state_dict and moves with the module
+        assert torch.equal(module.state_dict()["rotation"], rot)
+        assert module.to(torch.float32).rotation.dtype == torch.float32
+
+    @pytest.mark.parametrize("batch", [1, 3])
+    def test_cardinality(self, batch, device):
+        sh = random_sh(batch).to(device)
+        assert SHRotation(random_rotation().to(device))(sh).shape == (batch, 3, 9)
+        per_item = torch.stack([random_rotation(seed=s) for s in range(batch)]).to(device)
+        out = SHRotation(per_item)(sh)
+        assert out.shape == (batch, 3, 9)
+        for b in range(batch):
+            torch.testing.assert_close(out[b], rotate_sh(sh[b], per_item[b]))
+        assert SHRotation(per_item)(sh[0]).shape == (batch, 3, 9)  # one lighting, B rotations
+
+    def test_rotated_lighting_on_rotated_normals(self):
+        rot = random_rotation(seed=7)
+        sh = random_sh(1)
+        n = random_normals(1, 4, 4)
+        rotated_n = torch.einsum("ij,bjhw->bihw", rot, n)
+        torch.testing.assert_close(render_sh(rotated_n, SHRotation(rot)(sh)), render_sh(n, sh))
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="rotation"):
+            SHRotation(torch.eye(4))
+        with pytest.raises(ValueError, match="rotation"):
+            SHRotation(torch.eye(3, dtype=torch.int64))
+        with pytest.raises(TypeError, match="rotation"):
+            SHRotation([[1.0, 0.0, 0.0]] * 3)
+        with pytest.raises(ValueError, match="sh"):
+            SHRotation(torch.eye(3))(torch.zeros(1, 3, 4))
+
+    def test_gradcheck(self):
+        sh = random_sh(2).requires_grad_()
+        assert torch.autograd.gradcheck(SHRotation(random_rotation()), (sh,), fast_mode=True)
+        rot = random_rotation(seed=3).requires_grad_()  # the function is differentiable in the rotation too
+        assert torch.autograd.gradcheck(lambda r: rotate_sh(sh, r), (rot,), fast_mode=True)
+
+    def test_module(self, device, dtype):
+        rot = random_rotation(dtype=dtype).to(device)
+        sh = random_sh(3, dtype).to(device)
+        torch.testing.assert_close(SHRotation(rot)(sh), rotate_sh(sh, rot))
+
+    def test_dynamo(self):
+        rot, sh = random_rotation(), random_sh(2)
+        compiled = torch.compile(SHRotation(rot), backend="eager")
+        torch.testing.assert_close(compiled(sh), rotate_sh(sh, rot))
+
+
+class TestSHFit:
+    def test_smoke(self, device, dtype):
+        sh = random_sh(1, dtype).to(device)
+        n = random_normals(1, 8, 8, dtype).to(device)
+        mask = torch.ones(1, 1, 8, 8, dtype=torch.bool, device=device)
+        out = SHFit()(n, render_sh(n, sh), mask)
+        assert out.shape == (1, 3, 9) and out.dtype == dtype and out.device.type == device.type
+        torch.testing.assert_close(out, sh, atol=1e-4, rtol=0)
+        assert SHFit().nonnegative is None and list(SHFit().buffers()) == []
+
+    @pytest.mark.parametrize("batch", [1, 3])
+    def test_cardinality(self, batch, device):
+        n = random_normals(batch, 6, 6).to(device)
+        colours = torch.rand(batch, 3, 6, 6, dtype=torch.float64, device=device)
+        mask = torch.ones(batch, 1, 6, 6, dtype=torch.bool, device=device)
+        weights = torch.rand(batch, 1, 6, 6, dtype=torch.float64, device=device)
+        assert SHFit()(n, colours, mask).shape == (batch, 3, 9)
+        assert SHFit()(n, colours, mask, weights).shape == (batch, 3, 9)
+
+    def test_nonnegative_buffer(self):
+        # the constrained fit of TestFitSH.test_nonnegative_constraint, through the module
+        n = random_normals(1, 16, 16, torch.float64)
+        n[:, 2] = n[:, 2].abs()
+        sh = torch.zeros(1, 3, 9, dtype=torch.float64)
+        sh[:, :, 0], sh[:, :, 3] = 1.0, 2.0
+        mask = torch.ones(1, 1, 16, 16, dtype=torch.bool)
+        directions = n.flatten(2)[0].T.contiguous()
+        module = SHFit(directions)
+        assert "nonnegative" in module.state_dict()
+        fitted = module(n, render_sh(n, sh), mask)
+        assert float(render_sh(n, fitted).min()) > -1e-3
+        torch.testing.assert_close(fitted, fit_sh(n, render_sh(n, sh), mask, nonnegative=directions))
+
+    def test_exception(self):
+        n = random_normals(1, 4, 4)
+        mask = torch.ones(1, 1, 4, 4, dtype=torch.bool)
+        with pytest.raises(ValueError, match="nonnegative"):
+            SHFit(torch.zeros(5, 2))
+        with pytest.raises(ValueError, match="nonnegative"):
+            fit_sh(n, n, mask, nonnegative=torch.zeros(5, 2))
+        with pytest.raises(ValueError, match="mask"):
+            SHFit()(n, n, torch.ones(1, 1, 5, 4, dtype=torch.bool))
+        with pytest.raises(ValueError, match="colours"):
+            SHFit()(n, n[:, :2], mask)
+        with pytest.raises(ValueError, match="weights"):
+            SHFit()(n, n, mask, -torch.ones(1, 1, 4, 4, dtype=torch.float64))
+
+    def test_gradcheck(self):
+        n = random_normals(1, 4, 4).requires_grad_()
+        colours = torch.rand(1, 3, 4, 4, dtype=torch.float64, requires_grad=True)
+        weights = (0.5 + torch.rand(1, 1, 4, 4, dtype=torch.float64)).requires_grad_()
+        mask = torch.ones(1, 1, 4, 4, dtype=torch.bool)
+        module = SHFit()
+        assert torch.autograd.gradcheck(lambda a, b, w: module(a, b, mask, w), (n, colours, weights), fast_mode=True)
+
+    def test_module(self, device, dtype):
+        n = random_normals(2, 6, 5, dtype).to(device)
+        colours = torch.rand(2, 3, 6, 5, dtype=dtype, device=device)
+        mask = torch.rand(2, 1, 6, 5, device=device) < 0.8
+        torch.testing.assert_close(SHFit()(n, colours, mask), fit_sh(n, colours, mask))
+
+    def test_dynamo(self):
+        n = random_normals(2, 6, 6)
+        colours = torch.rand(2, 3, 6, 6, dtype=torch.float64)
+        mask = torch.ones(2, 1, 6, 6, dtype=torch.bool)
+        compiled = torch.compile(SHFit(), backend="eager")
+        torch.testing.assert_close(compiled(n, colours, mask), fit_sh(n, colours, mask))

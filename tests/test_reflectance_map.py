@@ -6,6 +6,8 @@ from sfs_torch.camera import centroid_rotation
 from sfs_torch.lighting import fit_sh, natural_lightings, render_sh, render_sphere, rotate_sh
 from sfs_torch.metrics import lmse
 from sfs_torch.reflectance_map import (
+    LightingEstimator,
+    LightingRefit,
     ReflectanceMapConfig,
     estimate_lighting,
     hemisphere_directions,
@@ -121,3 +123,136 @@ class TestRefitLighting:
         normals, mask = sphere_image(32, 12.0)
         with pytest.raises(ValueError, match="mask"):
             refit_lighting(torch.zeros(1, 3, 32, 32), torch.zeros_like(mask), normals)
+
+
+def lit_spheres(batch, size=32, radius=12.0, dtype=torch.float32):
+    """``batch`` spheres under different natural lightings: normals, mask, lighting, image."""
+    normals, mask = sphere_image(size, radius)
+    lights = natural_lightings(0.7)
+    sh = torch.stack([lights[name] for name in sorted(lights)[:batch]]).to(dtype)
+    normals, mask = normals.to(dtype).expand(batch, -1, -1, -1), mask.expand(batch, -1, -1, -1)
+    image = (render_sh(normals, sh) * mask).clamp(0, 1)
+    return normals, mask, sh, image
+
+
+# small settings keep the k-NN and the fits cheap
+FEW_DIRECTIONS = ReflectanceMapConfig(n_directions=40)
+
+
+class TestLightingEstimator:
+    def test_smoke(self, device, dtype):
+        _, mask, sh, image = lit_spheres(1, 64, 26.0, dtype)
+        module = LightingEstimator()
+        out = module(image.to(device), mask.to(device))
+        assert out.shape == (1, 3, 9) and out.dtype == dtype and out.device.type == device.type
+        assert float(lmse(out.cpu().float(), sh.float())[0]) < 1e-3
+        assert module.config == ReflectanceMapConfig() and module.focal is None
+        assert list(module.buffers()) == []
+
+    @pytest.mark.parametrize("batch", [1, 3])
+    def test_cardinality(self, batch, device):
+        _, mask, _, image = lit_spheres(batch)
+        module = LightingEstimator(FEW_DIRECTIONS)
+        out = module(image.to(device), mask.to(device))
+        assert out.shape == (batch, 3, 9)
+        for b in range(batch):  # objects are estimated one at a time
+            torch.testing.assert_close(out[b : b + 1], module(image[b : b + 1].to(device), mask[b : b + 1].to(device)))
+
+    def test_exception(self):
+        _, mask, _, image = lit_spheres(1)
+        with pytest.raises(ValueError, match="profile"):
+            LightingEstimator(ReflectanceMapConfig(profile="cube"))
+        with pytest.raises(ValueError, match="config"):
+            LightingEstimator({"n_direction": 10})
+        with pytest.raises(TypeError, match="config"):
+            LightingEstimator("sphere")
+        with pytest.raises(ValueError, match="focal"):
+            LightingEstimator(focal=-1.0)
+        with pytest.raises(ValueError, match="image"):
+            LightingEstimator()(image[:, :2], mask)
+        with pytest.raises(ValueError, match="mask"):
+            LightingEstimator()(image, torch.zeros_like(mask))
+
+    def test_gradcheck(self):
+        # Differentiable in the image: the k nearest pixels of each hemisphere direction
+        # (Eq. 9) are chosen by the mask's silhouette mapping alone, so the k-NN selection
+        # is a constant of the image; what remains (means, least squares, mean/std
+        # matching) is smooth. The mask (bool) has no gradient.
+        _, mask, _, image = lit_spheres(1, 16, 6.0, torch.float64)
+        g = torch.Generator().manual_seed(0)
+        image = ((image + 0.01 * torch.rand(image.shape, generator=g, dtype=torch.float64)) * mask).requires_grad_()
+        module = LightingEstimator(ReflectanceMapConfig(n_directions=20), focal=30.0)
+        assert torch.autograd.gradcheck(lambda x: module(x, mask), (image,), fast_mode=True)
+
+    def test_module(self):
+        _, mask, _, image = lit_spheres(2)
+        mask = mask.roll(3, -1)  # off centre: the perspective rotation is not the identity
+        image = image.roll(3, -1)
+        options = {"profile": "linear", "n_directions": 40, "match_statistics": False}
+        module = LightingEstimator(options, focal=40.0, principal_point=(15.0, 17.0))
+        assert module.config == ReflectanceMapConfig(**options)
+        expected = estimate_lighting(
+            image, mask, focal=40.0, principal_point=(15.0, 17.0), config=ReflectanceMapConfig(**options)
+        )
+        torch.testing.assert_close(module(image, mask), expected)
+
+    @pytest.mark.slow
+    @pytest.mark.filterwarnings("ignore:Dynamo does not know how to trace the builtin")
+    def test_dynamo(self):
+        # ~20 s: the per-object loop, the SciPy distance transform and the k-NN chunks
+        # break the graph many times
+        _, mask, _, image = lit_spheres(2)
+        module = LightingEstimator(FEW_DIRECTIONS)
+        compiled = torch.compile(module, backend="eager")
+        torch.testing.assert_close(compiled(image, mask), module(image, mask))
+
+
+class TestLightingRefit:
+    def test_smoke(self, device, dtype):
+        normals, mask, sh, image = lit_spheres(1, dtype=dtype)
+        module = LightingRefit()
+        out = module(image.to(device), mask.to(device), normals.to(device))
+        assert out.shape == (1, 3, 9) and out.dtype == dtype and out.device.type == device.type
+        torch.testing.assert_close(out.cpu(), sh, atol=1e-3, rtol=0)
+        assert module.valid and "valid=True" in repr(module)
+
+    @pytest.mark.parametrize("batch", [1, 3])
+    def test_cardinality(self, batch, device):
+        normals, mask, sh, image = lit_spheres(batch)
+        out = LightingRefit()(image.to(device), mask.to(device), normals.to(device))
+        assert out.shape == (batch, 3, 9)
+        torch.testing.assert_close(out.cpu(), sh, atol=1e-3, rtol=0)
+
+    def test_exception(self):
+        normals, mask, _, image = lit_spheres(1)
+        with pytest.raises(ValueError, match="mask"):
+            LightingRefit()(image, torch.zeros_like(mask), normals)
+        with pytest.raises(ValueError, match="normals"):
+            LightingRefit()(image, mask, normals[:, :2])
+        with pytest.raises(ValueError, match="image"):
+            LightingRefit()(image[:, :2], mask, normals)
+
+    def test_gradcheck(self):
+        normals, mask, _, image = lit_spheres(1, 12, 5.0, torch.float64)
+        g = torch.Generator().manual_seed(1)
+        # unclipped pixels, a lighting valid on the hemisphere: the non-negativity
+        # constraint stays inactive and the fit is plain least squares
+        noise = 0.01 * torch.rand(image.shape, generator=g, dtype=torch.float64)
+        image = ((0.9 * image + noise) * mask).requires_grad_()
+        normals = normals.clone().requires_grad_()
+        module = LightingRefit()
+        assert torch.autograd.gradcheck(lambda x, n: module(x, mask, n), (image, normals), fast_mode=True)
+
+    @pytest.mark.parametrize("valid", [True, False])
+    def test_module(self, valid):
+        normals, mask, _, image = lit_spheres(2)
+        wrong = torch.nn.functional.normalize(normals + torch.tensor([0.8, 0.0, 0.0]).view(1, 3, 1, 1), dim=1) * mask
+        expected = refit_lighting(image, mask, wrong, valid=valid)
+        torch.testing.assert_close(LightingRefit(valid)(image, mask, wrong), expected)
+
+    @pytest.mark.slow
+    def test_dynamo(self):
+        # ~5 s: the clipping test and the validity constraint break the graph
+        normals, mask, _, image = lit_spheres(2)
+        compiled = torch.compile(LightingRefit(), backend="eager")
+        torch.testing.assert_close(compiled(image, mask, normals), refit_lighting(image, mask, normals))

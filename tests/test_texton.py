@@ -8,7 +8,9 @@ from skimage.color import rgb2lab
 from sfs_torch.texton import (
     N_TEXTON_FILTERS,
     TEXTON_FILTER_NAMES,
+    LinearRGBToLab,
     TextonConfig,
+    TextonFeatures,
     linear_rgb_to_lab,
     texton_features,
     texton_filter_bank,
@@ -143,3 +145,92 @@ class TestTextonFeatures:
             texton_features(torch.rand(1, 3, 3, 3), padding="valid")
         with pytest.raises(ValueError, match="image"):
             texton_features(torch.full((1, 3, 5, 5), float("nan")))
+
+
+class TestLinearRGBToLabModule:
+    def test_smoke(self, device, dtype):
+        out = LinearRGBToLab()(torch.rand(1, 3, 4, 5, device=device, dtype=dtype))
+        assert out.shape == (1, 3, 4, 5) and out.dtype == dtype and out.device.type == device.type
+        # white is L = 100, a = b = 0
+        white = LinearRGBToLab()(torch.ones(1, 3, 1, 1, device=device, dtype=dtype))[0, :, 0, 0].double().cpu()
+        torch.testing.assert_close(white, torch.tensor([100.0, 0.0, 0.0], dtype=torch.float64), atol=1e-2, rtol=0)
+
+    @pytest.mark.parametrize("batch", [1, 3])
+    def test_cardinality(self, batch, device):
+        assert LinearRGBToLab()(torch.rand(batch, 3, 4, 6, device=device)).shape == (batch, 3, 4, 6)
+        assert LinearRGBToLab()(torch.rand(3, 4, 6, device=device)).shape == (3, 4, 6)
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="image"):
+            LinearRGBToLab()(torch.rand(1, 4, 4, 4))
+        with pytest.raises(ValueError, match="image"):
+            LinearRGBToLab()(torch.rand(4, 4))
+
+    def test_gradcheck(self):
+        g = torch.Generator().manual_seed(4)
+        # away from the sRGB and Lab linear segments near black
+        image = (0.05 + 0.9 * torch.rand(1, 3, 3, 4, generator=g, dtype=torch.float64)).requires_grad_()
+        assert torch.autograd.gradcheck(LinearRGBToLab(), (image,), fast_mode=True)
+
+    def test_module(self, device, dtype):
+        image = torch.rand(2, 3, 5, 5, device=device, dtype=dtype)
+        torch.testing.assert_close(LinearRGBToLab()(image), linear_rgb_to_lab(image))
+
+    def test_dynamo(self):
+        image = torch.rand(2, 3, 5, 5)
+        compiled = torch.compile(LinearRGBToLab(), backend="eager")
+        torch.testing.assert_close(compiled(image), linear_rgb_to_lab(image))
+
+
+class TestTextonFeaturesModule:
+    def test_smoke(self, device, dtype):
+        image = torch.rand(1, 3, 7, 9, device=device, dtype=dtype)
+        module = TextonFeatures()
+        out = module(image)
+        assert out.shape == (1, N_TEXTON_FILTERS, 7, 9) and out.dtype == dtype and out.device.type == device.type
+        assert module.kernel_size == TextonConfig().kernel_size and module.padding == "same"
+        assert "kernel_size=5" in repr(module)
+        assert list(module.buffers()) == [] and list(module.parameters()) == []
+
+    @pytest.mark.parametrize("batch", [1, 3])
+    def test_cardinality(self, batch, device):
+        image = torch.rand(batch, 3, 8, 11, device=device)
+        mask = torch.rand(batch, 1, 8, 11, device=device) < 0.8
+        assert TextonFeatures()(image, mask).shape == (batch, 17, 8, 11)
+        assert TextonFeatures(kernel_size=3, padding="valid")(image).shape == (batch, 17, 6, 9)
+        assert TextonFeatures()(image[0], mask[0]).shape == (17, 8, 11)
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="padding"):
+            TextonFeatures(padding="reflect")
+        with pytest.raises(ValueError, match="kernel_size"):
+            TextonFeatures(kernel_size=4)
+        with pytest.raises(ValueError, match="image"):
+            TextonFeatures()(torch.rand(1, 4, 5, 5))
+        with pytest.raises(ValueError, match="mask"):
+            TextonFeatures()(torch.rand(1, 3, 5, 5), torch.ones(1, 1, 4, 5, dtype=torch.bool))
+        with pytest.raises(ValueError, match="kernel_size"):
+            TextonFeatures(padding="valid")(torch.rand(1, 3, 3, 3))
+
+    def test_gradcheck(self):
+        g = torch.Generator().manual_seed(5)
+        image = (0.05 + 0.9 * torch.rand(1, 3, 5, 6, generator=g, dtype=torch.float64)).requires_grad_()
+        mask = torch.ones(1, 1, 5, 6, dtype=torch.bool)
+        mask[..., 0, 0] = False
+        module = TextonFeatures()
+        assert torch.autograd.gradcheck(lambda x: module(x, mask), (image,), fast_mode=True)
+
+    def test_module(self, device, dtype):
+        image = torch.rand(2, 3, 9, 8, device=device, dtype=dtype)
+        mask = torch.rand(2, 1, 9, 8, device=device) < 0.7
+        torch.testing.assert_close(TextonFeatures()(image, mask), texton_features(image, mask))
+        valid = TextonFeatures(kernel_size=7, padding="valid")
+        torch.testing.assert_close(valid(image), texton_features(image, kernel_size=7, padding="valid"))
+
+    # dynamo traces through the lru_cache of the filter bank (it builds the same constant bank)
+    @pytest.mark.filterwarnings("ignore:Dynamo detected a call to a `functools.lru_cache`")
+    def test_dynamo(self):
+        image = torch.rand(2, 3, 8, 8)
+        mask = torch.rand(2, 1, 8, 8) < 0.8
+        compiled = torch.compile(TextonFeatures(), backend="eager")
+        torch.testing.assert_close(compiled(image, mask), texton_features(image, mask))

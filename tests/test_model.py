@@ -1,0 +1,128 @@
+import pytest
+import torch
+from scenes import sphere
+from test_pipeline import TINY
+
+import sfs_torch
+from sfs_torch.lighting import natural_lightings, render_sh
+from sfs_torch.model import ShapeFromShading
+from sfs_torch.pipeline import Estimate, PipelineConfig, estimate, resolve_config
+
+# TINY without the stages that cost seconds on a CPU (photometric refinement, refit round)
+FAST = dict(TINY, refine={"when": "never"}, reflectance_map={"refine_rounds": 0, "keep_prior": False})
+
+
+@pytest.fixture(scope="module")
+def scene():
+    normals, mask = sphere()
+    sh = natural_lightings(0.7)["grace_cathedral"]
+    image = (render_sh(normals[None], sh[None])[0] * mask).clamp(0, 1)
+    return normals, mask, sh, image
+
+
+@pytest.fixture(scope="module")
+def tiny_estimates(scene):
+    """The module's and the function's estimate of the same image, with TINY."""
+    _, mask, _, image = scene
+    return ShapeFromShading(TINY, progress=False)(image, mask), estimate(image, mask, config=TINY, progress=False)
+
+
+def assert_same_estimate(a: Estimate, b: Estimate) -> None:
+    for name in ("normals", "confidence", "lighting", "depth", "mask"):
+        x, y = getattr(a, name), getattr(b, name)
+        if y is None:
+            assert x is None, name
+        else:
+            torch.testing.assert_close(x, y, rtol=0, atol=0, msg=lambda m: f"{name}: {m}")
+
+
+class TestShapeFromShading:
+    def test_smoke(self, scene, tiny_estimates):
+        normals, mask, _, _ = scene
+        est, _ = tiny_estimates
+        assert isinstance(est, Estimate)
+        assert est.normals.shape == (3, 64, 64) and est.confidence.shape == (1, 64, 64)
+        assert est.lighting.shape == (3, 9) and est.depth is None
+        norms = est.normals.norm(dim=0)[mask[0]]
+        torch.testing.assert_close(norms, torch.ones_like(norms))
+        # the sphere's normals, roughly (test_pipeline measures the accuracy)
+        cos = (est.normals * normals).sum(0)[mask[0]]
+        assert float(torch.rad2deg(torch.acos(cos.clamp(-1, 1))).median()) < 10.0
+
+    def test_config(self):
+        model = ShapeFromShading(TINY, progress=False)
+        assert model.config == resolve_config(TINY) and isinstance(model.config, PipelineConfig)
+        assert model.config.forest.n_trees == TINY["forest"]["n_trees"]
+        assert ShapeFromShading(resolve_config(TINY)).config == model.config
+        assert ShapeFromShading().config == PipelineConfig()
+        assert "database='blobby'" in repr(model)
+        assert sfs_torch.ShapeFromShading is ShapeFromShading
+
+    def test_holds_no_tensors(self):
+        # the options are the whole state: .to() has nothing to move, the input's device rules
+        model = ShapeFromShading(TINY)
+        assert model.to("cpu") is model and model.to(torch.float64) is model
+        assert list(model.parameters()) == [] and list(model.buffers()) == [] and model.state_dict() == {}
+
+    @pytest.mark.parametrize("batch", [1, 3])
+    def test_cardinality(self, scene, batch):
+        _, mask, _, image = scene
+        small_image = torch.nn.functional.avg_pool2d(image, 2)
+        small_mask = torch.nn.functional.avg_pool2d(mask[None].float(), 2)[0] > 0.5
+        images = torch.stack([small_image, small_image.flip(-1), small_image.flip(-2)][:batch])
+        masks = torch.stack([small_mask, small_mask.flip(-1), small_mask.flip(-2)][:batch])
+        est = ShapeFromShading(FAST, progress=False)(images, masks)
+        assert est.normals.shape == (batch, 3, 32, 32) and est.confidence.shape == (batch, 1, 32, 32)
+        assert est.lighting.shape == (batch, 3, 9) and est.mask.shape == (batch, 1, 32, 32)
+        assert float(est.normals[~masks.expand(-1, 3, -1, -1)].abs().max()) == 0.0
+
+    def test_exception(self, scene):
+        _, mask, _, image = scene
+        with pytest.raises(ValueError, match="config"):
+            ShapeFromShading({"forest": {"n_tree": 3}})
+        model = ShapeFromShading(TINY, progress=False)
+        with pytest.raises(ValueError, match="image"):
+            model(image[:2], mask)
+        with pytest.raises(ValueError, match="mask"):
+            model(image, mask[:, :32])
+        with pytest.raises(ValueError, match="integrate"):
+            model(image, mask, integrate="l3")
+        with pytest.raises(ValueError, match="focal"):
+            model(image, mask, focal=-5.0)
+        with pytest.raises(ValueError, match="lighting"):
+            model(image, mask, lighting=torch.zeros(3, 4))
+
+    @pytest.mark.skip(
+        reason="not differentiable: the forest routes each pixel by hard thresholds on its features, so the "
+        "normals are piecewise constant in the image; its leaf statistics carry no gradient"
+    )
+    def test_gradcheck(self):
+        pass
+
+    def test_module(self, tiny_estimates):
+        # the module is estimate() with its config: identical output on the same input
+        assert_same_estimate(*tiny_estimates)
+
+    def test_module_keywords(self, scene):
+        # camera, known lighting and integration reach estimate() unchanged
+        _, mask, sh, image = scene
+        kwargs = dict(lighting=sh, focal=60.0, principal_point=(31.0, 33.0), integrate="l2")
+        got = ShapeFromShading(FAST, progress=False)(image, mask, **kwargs)
+        expected = estimate(image, mask, config=FAST, progress=False, **kwargs)
+        assert got.depth is not None
+        assert_same_estimate(got, expected)
+
+    @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA")
+    def test_cuda_end_to_end(self, scene):
+        _, mask, sh, image = scene
+        model = ShapeFromShading(TINY, progress=False).to("cuda")
+        image, mask = image.cuda(), mask.cuda()
+        for kwargs in (dict(integrate="l2"), dict(lighting=sh.cuda(), focal=60.0)):
+            est = model(image, mask, **kwargs)
+            for name in ("normals", "confidence", "lighting", "depth", "mask"):
+                value = getattr(est, name)
+                if value is not None:
+                    assert value.is_cuda, f"{name} is on {value.device} with {kwargs}"
+                    assert bool(torch.isfinite(value.float()).all()), name
+            norms = est.normals.norm(dim=0)[mask[0]]
+            torch.testing.assert_close(norms, torch.ones_like(norms), atol=1e-4, rtol=0)
