@@ -12,7 +12,8 @@ measure what each costs:
   (:func:`dominant_light`, :func:`blinn_phong`);
 * **exposure and white-balance errors**: a global gain and per-channel gains (:func:`expose`);
 * **sensor noise and 8-bit sRGB files**: Poisson-Gaussian noise (:func:`poisson_gaussian_noise`)
-  and quantisation in sRGB (:func:`quantise_srgb`).
+  and quantisation in sRGB (:func:`quantise_srgb`); :func:`estimate_noise_sigma` reads
+  the resulting noise level back off an image.
 
 :func:`sfs_torch.datasets.synthetic_scenes` composes them. The radiance is the 9-term
 one, so shadows here are softer than under a real environment map with a sun.
@@ -24,6 +25,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 import trimesh
 from torch import Tensor
 
@@ -41,6 +43,7 @@ __all__ = [
     "expose",
     "poisson_gaussian_noise",
     "quantise_srgb",
+    "estimate_noise_sigma",
 ]
 
 
@@ -192,3 +195,27 @@ def quantise_srgb(image: Tensor, bits: int = 8) -> Tensor:
     """Store as a ``bits``-bit sRGB file and read it back: clip to [0, 1], encode, round, decode; any shape."""
     levels = 2 ** bits - 1
     return srgb_to_linear(torch.round(linear_to_srgb(image.clamp(0, 1)) * levels) / levels)
+
+
+_LAPLACIAN = ((0.0, 1.0, 0.0), (1.0, -4.0, 1.0), (0.0, 1.0, 0.0))
+
+
+def estimate_noise_sigma(image: Tensor, mask: Tensor) -> Tensor:
+    r"""The standard deviation of an image's pixel noise on its object: :math:`(B, 3, H, W), (B, 1, H, W) -> (B,)`.
+
+    The median absolute 3x3 Laplacian over the object's interior (the mask eroded by two
+    pixels, away from the rim's steep shading), scaled to a Gaussian's standard deviation
+    (``1.4826 / sqrt(20)``). Smooth shading has almost no Laplacian at a few hundred pixels
+    across, so what is measured is the noise (sensor noise, quantisation). Exact for
+    white Gaussian noise on a locally linear image; 0 for an object with no interior.
+    """
+    check_shape(image, "image", "B 3 H W")
+    kernel = torch.tensor(_LAPLACIAN, dtype=image.dtype, device=image.device).view(1, 1, 3, 3).repeat(3, 1, 1, 1)
+    laplacian = F.conv2d(image, kernel, groups=3).abs()
+    interior = (-F.max_pool2d(-mask.to(image.dtype), 5, 1, 2))[..., 1:-1, 1:-1] > 0.5
+    sigma = torch.zeros(image.shape[0], dtype=image.dtype, device=image.device)
+    for b in range(image.shape[0]):
+        values = laplacian[b][interior[b].expand(3, -1, -1)]
+        if values.numel():
+            sigma[b] = 1.4826 / math.sqrt(20.0) * values.median()
+    return sigma

@@ -40,6 +40,7 @@ from .camera import CameraConfig, centroid_rotation, rotate_normals_to_camera
 from .forest import VMF, ForestConfig, VMFForest, sample_vmf
 from .forest_cache import CACHE_POLICIES, evict_forests, forest_path, load_forest, save_forest
 from .geometry_db import DatabaseConfig, GeometryDatabase, load_database
+from .image_formation import estimate_noise_sigma
 from .integrability import IntegrabilityConfig, integrate_convex, integrate_normals
 from .lighting import render_sh, rotate_sh, sh_basis_vectors
 from .reflectance_map import (
@@ -76,6 +77,9 @@ class TrainingConfig:
     Attributes:
         noise_sigma: std of the Gaussian noise added to the shaded patches before
             clipping to [0, 1] (the paper: 0.001).
+        noise_from_image: use the test image's own noise level instead when it is higher
+            (:func:`sfs_torch.image_formation.estimate_noise_sigma`), so that the forest
+            learns the noise it will see (a camera's shot noise and 8-bit steps).
         brightness_jitter: std of a per-patch log-brightness factor applied before the
             noise, which makes the forest tolerant of an estimated lighting whose overall
             brightness is off (0: off). Only used when the lighting is estimated: a
@@ -94,6 +98,7 @@ class TrainingConfig:
     """
 
     noise_sigma: float = 0.001
+    noise_from_image: bool = True
     brightness_jitter: float = 0.3
     colour_jitter: float = 0.05
     seed: int = 0
@@ -385,6 +390,7 @@ def estimate(
         m = mask_b[b, 0]
         rows = feats[b].permute(1, 2, 0)[m]
         centroid = centroid_rotation(mask_b[b : b + 1], focal, principal_point)[0] if focal is not None else None
+        image_cfg = _with_image_noise(train_cfg, image_b[b : b + 1], mask_b[b : b + 1])
         best = None  # (residual, lighting, normals, confidence, forest) of the best round so far
         for round_ in range(rounds + 1):
             if round_ > 0:
@@ -394,7 +400,7 @@ def estimate(
             # Perspective: train in the object's own orthographic frame (the lighting
             # seen from its centroid), then rotate the predictions to the camera frame.
             local_sh = sh[b] if centroid is None else rotate_sh(sh[b], centroid.T.to(sh.dtype))
-            forest = _trained_forest(local_sh, db, train_cfg, timer, given=lighting is not None)
+            forest = _trained_forest(local_sh, db, image_cfg, timer, given=lighting is not None)
             with timer("predict"):
                 pred: VMF = forest.predict(rows)
             normals[b] = 0
@@ -464,6 +470,18 @@ def estimate(
         normals=out(normals), confidence=out(confidence), lighting=out(sh), depth=out(depth), mask=out(mask_b),
         timings=dict(timer.seconds),
     )
+
+
+def _with_image_noise(cfg: PipelineConfig, image: Tensor, mask: Tensor) -> PipelineConfig:
+    """``cfg`` with the training noise raised to the image's own noise level (``training.noise_from_image``)."""
+    if not cfg.training.noise_from_image:
+        return cfg
+    sigma = float(estimate_noise_sigma(image, mask)[0])
+    if sigma <= cfg.training.noise_sigma:
+        return cfg
+    log.info("training with the image's noise level: sigma %.4f (training.noise_sigma %.4f)", sigma,
+             cfg.training.noise_sigma)
+    return replace(cfg, training=replace(cfg.training, noise_sigma=round(sigma, 5)))
 
 
 def _better_prior(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, focal: Optional[float],

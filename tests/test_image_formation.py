@@ -7,6 +7,7 @@ import trimesh
 from sfs_torch.image_formation import (
     blinn_phong,
     dominant_light,
+    estimate_noise_sigma,
     expose,
     poisson_gaussian_noise,
     quantise_srgb,
@@ -133,3 +134,18 @@ class TestCameraEffects:
         codes = linear_to_srgb(q) * 255
         assert torch.allclose(codes, codes.round(), atol=1e-6)
         assert (linear_to_srgb(q) - linear_to_srgb(x.clamp(0, 1))).abs().max() <= 0.5 / 255 + 1e-9
+
+
+class TestNoiseEstimate:
+    @pytest.mark.parametrize("sigma", [0.001, 0.005, 0.02])
+    def test_recovers_gaussian_noise_on_smooth_shading(self, sigma):
+        yy, xx = torch.meshgrid(torch.linspace(-1, 1, 128), torch.linspace(-1, 1, 128), indexing="ij")
+        mask = (xx ** 2 + yy ** 2 < 0.8)[None, None]
+        clean = (0.4 + 0.2 * xx + 0.1 * yy - 0.1 * xx * xx).expand(1, 3, -1, -1)
+        noisy = clean + sigma * torch.randn(clean.shape, generator=torch.Generator().manual_seed(1))
+        assert float(estimate_noise_sigma(noisy, mask)[0]) == pytest.approx(sigma, rel=0.1)
+
+    def test_no_interior(self):
+        mask = torch.zeros(1, 1, 16, 16, dtype=torch.bool)
+        mask[..., 8, 4:12] = True  # a line: no pixel two pixels inside
+        assert float(estimate_noise_sigma(torch.rand(1, 3, 16, 16), mask)[0]) == 0.0
