@@ -36,7 +36,7 @@ from omegaconf.errors import OmegaConfBaseException
 from torch import Tensor
 
 from ._checks import check_finite, check_mask, check_same_size, to_batch
-from .camera import CameraConfig, centroid_rotation, rotate_normals_to_camera
+from .camera import CameraConfig, _positive_focal, centroid_rotation, rotate_normals_to_camera
 from .forest import VMF, ForestConfig, VMFForest, sample_vmf
 from .forest_cache import CACHE_POLICIES, evict_forests, forest_path, load_forest, save_forest
 from .geometry_db import DatabaseConfig, GeometryDatabase, load_database
@@ -565,15 +565,7 @@ TINY_OBJECT_PIXELS = 64
 
 
 def _check_focal(focal: Any) -> Optional[float]:
-    if focal is None:
-        return None
-    try:
-        value = float(focal)
-    except (TypeError, ValueError):
-        raise ValueError(f"focal must be a positive focal length in pixels, got {focal!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise ValueError(f"focal must be a positive focal length in pixels, got {focal!r}")
-    return value
+    return None if focal is None else _positive_focal(focal)
 
 
 def _check_principal_point(principal_point: Any, focal: Optional[float]) -> Optional[tuple]:
