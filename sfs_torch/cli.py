@@ -3,7 +3,8 @@
 ``sfs-torch`` alone runs the built-in demo end to end: an evaluation shape (never
 used for training) rendered under a natural lighting, estimated in unknown
 illumination, with outputs and a summary figure. ``sfs-torch image=... mask=...``
-runs on the user's files. Overrides are Hydra's ``key=value``.
+runs on the user's files; ``sfs-torch input_dir=... out=...`` on every item folder of
+``input_dir`` (a batch, ``docs/batch.md``). Overrides are Hydra's ``key=value``.
 """
 from __future__ import annotations
 
@@ -13,9 +14,11 @@ import os
 import shutil
 import sys
 import tempfile
+import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Dict, Iterator, List, Optional, Tuple
 
 # Idle OpenMP threads spin by default; on a small shared CPU that made the forest's many
 # short parallel loops 20-50x slower (docs/forest.md). The command owns its process, so it
@@ -75,6 +78,11 @@ class AppConfig(PipelineConfig):
     lighting: Optional[str] = None
     image_srgb: bool = True
     out: Optional[str] = None
+    # a batch: every item folder <input_dir>/<item>/ (image + mask, optional ground truth)
+    # into <out>/<item>/, with <out>/summary.csv (docs/batch.md)
+    input_dir: Optional[str] = None
+    # batch: skip an item whose folder in out already holds every file this run would write
+    skip_done: bool = True
     device: str = "cpu"
     # mesh files written when there is a depth map: any of io.MESH_FORMATS ("ply", "obj",
     # "glb"); [] for none. Typed Any so that a bad value reaches _mesh_formats' one-line error.
@@ -208,61 +216,90 @@ def _output_folder(cfg: DictConfig) -> Path:
 
 
 def run(cfg: DictConfig) -> Dict[str, float]:
-    """Run the app on a composed config; returns the key numbers (also written as JSON)."""
+    """Run the app on one image (or the demo); returns the key numbers (also written as JSON).
+
+    Raises:
+        ValueError: bad options or inputs; ``input_dir`` is set (a batch: :func:`run_batch`).
+        FileNotFoundError: an input file is missing.
+    """
+    if cfg.get("input_dir") is not None:
+        raise ValueError("input_dir is a batch run: call sfs_torch.cli.run_batch (the command does)")
     device = _device(cfg.device)
     mesh_formats = _mesh_formats(cfg.mesh_formats)
     out = _output_folder(cfg)
     pipeline_cfg = _pipeline_config(cfg)
+    true_normals = true_lighting = None
     if cfg.image is None:
         if cfg.mask is not None:
             raise ValueError("mask was given without image: pass image=PATH too (or neither for the demo)")
         demo = _demo_inputs(cfg, device)
         image, mask, known = demo["image"], demo["mask"], None
+        true_normals, true_lighting = demo["normals"], demo["lighting"]
+        title = f"sfs-torch: demo {demo['name']}"
         log.info("demo: evaluation shape %r under %s", demo["name"], cfg.demo.lighting)
     else:
         loaded = io.read_image_and_mask(cfg.image, cfg.mask, srgb=cfg.image_srgb)
         image, mask = loaded.image.to(device), loaded.mask.to(device)
         known = io.read_lighting(cfg.lighting) if cfg.lighting else None
-        demo = None
-    est = estimate(image, mask, lighting=known, config=pipeline_cfg)
-    # every file is written under a hidden staging folder first and renamed into place
-    # when all are complete: a killed run leaves no half-written file under a final name
-    out.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=".sfs-torch-partial-", dir=out))
-    try:
-        _write_outputs(staging, est, cfg.camera, mesh_formats)
-        numbers = _finish(cfg, staging, est, image, mask, demo)
-        _publish(staging, out)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+        title = f"sfs-torch: {cfg.image}"
+    numbers = _estimate_and_publish(
+        out, image, mask, known, pipeline_cfg, mesh_formats, title, true_normals=true_normals, true_lighting=true_lighting
+    )
     for key, value in numbers.items():
         log.info("%-32s %.4g", key, value)
     log.info("outputs written to %s", out.resolve())
     return numbers
 
 
-def _finish(cfg: DictConfig, out: Path, est: Estimate, image, mask, demo) -> Dict[str, float]:
+def _estimate_and_publish(
+    out: Path, image: torch.Tensor, mask: torch.Tensor, known: Optional[torch.Tensor], pipeline_cfg: DictConfig,
+    mesh_formats: Tuple[str, ...], title: str, *, true_normals: Optional[torch.Tensor] = None,
+    true_lighting: Optional[torch.Tensor] = None, progress: bool = True,
+) -> Dict[str, float]:
+    """Estimate one image and publish its outputs into ``out``; return the key numbers.
+
+    The single-image path of the command, shared by the demo, ``image=`` and every item of
+    a batch. ``image`` is :math:`(3, H, W)`, ``mask`` :math:`(1, H, W)`; ``true_normals``
+    :math:`(3, H, W)` and ``true_lighting`` :math:`(3, 9)`, when known, are scored.
+    """
+    est = estimate(image, mask, lighting=known, config=pipeline_cfg, progress=progress)
+    # every file is written under a hidden staging folder first and renamed into place
+    # when all are complete: a killed run leaves no half-written file under a final name
+    out.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".sfs-torch-partial-", dir=out))
+    try:
+        _write_outputs(staging, est, pipeline_cfg.camera, mesh_formats)
+        numbers = _finish(staging, est, image, mask, title, true_normals, true_lighting)
+        _publish(staging, out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return numbers
+
+
+def _finish(out: Path, est: Estimate, image, mask, title: str, true_normals, true_lighting) -> Dict[str, float]:
     """Write the key numbers (``metrics.json``) and the summary figure; return the numbers."""
     numbers: Dict[str, float] = {}
     for stage, seconds in est.timings.items():
         numbers[f"time {stage} (s)"] = seconds
-    title = f"sfs-torch: {cfg.image or 'demo ' + demo['name']}"
-    if demo is not None:
-        metrics = normal_metrics(est.normals[None].cpu(), demo["normals"][None], mask[None].cpu())
-        baseline = normal_metrics(coarse_normals(mask[None].cpu()), demo["normals"][None], mask[None].cpu())
-        numbers = {
+    if true_normals is not None:
+        truth = true_normals.cpu()[None]
+        metrics = normal_metrics(est.normals[None].cpu(), truth, mask[None].cpu())
+        baseline = normal_metrics(coarse_normals(mask[None].cpu()), truth, mask[None].cpu())
+        scores = {
             "median error (deg)": float(metrics.median[0]),
             "mean error (deg)": float(metrics.mean[0]),
             "< 22.5 deg": float(metrics.under_22_5[0]),
             "silhouette-only median (deg)": float(baseline.median[0]),
-            "lighting lMSE": float(lmse(est.lighting[None].cpu(), demo["lighting"][None])[0]),
-            **numbers,
         }
+        if true_lighting is not None:
+            scores["lighting lMSE"] = float(lmse(est.lighting[None].cpu(), true_lighting.cpu()[None])[0])
+        numbers = {**scores, **numbers}
     summary_numbers = {k: v for k, v in numbers.items() if not k.startswith("time ")}
     summary_numbers["time per call (s)"] = sum(t for stage, t in est.timings.items() if stage != "database")
     summary_figure(
         out / "summary.png", image.cpu(), mask.cpu(), est.normals.cpu(), est.lighting.cpu(),
-        true_normals=None if demo is None else demo["normals"], true_lighting=None if demo is None else demo["lighting"],
+        true_normals=None if true_normals is None else true_normals.cpu(),
+        true_lighting=None if true_lighting is None else true_lighting.cpu(),
         confidence=est.confidence.cpu(), depth=None if est.depth is None else est.depth.cpu(),
         numbers=summary_numbers, title=title,
     )
@@ -270,10 +307,238 @@ def _finish(cfg: DictConfig, out: Path, est: Estimate, image, mask, demo) -> Dic
     return numbers
 
 
+# ------------------------------------------------------------------------------------------
+# Batch: every item folder of input_dir (docs/batch.md)
+
+# written by every run; the depth outputs and meshes also when integrate= is set
+REQUIRED_OUTPUTS = ("normals.npy", "normals.png", "lighting.json", "reflectance_map.png", "confidence.png",
+                    "summary.png", "metrics.json")
+SUMMARY_COLUMNS = ("item", "status", "seconds", "error", "median_error_deg")
+
+
+@dataclass(frozen=True)
+class BatchItem:
+    """One row of ``summary.csv``.
+
+    Attributes:
+        item: the item folder's name (its outputs are in ``<out>/<item>/``).
+        status: ``"ok"``, ``"failed"`` or ``"skipped"`` (its outputs were complete).
+        seconds: wall-clock seconds this run spent on the item (reading, estimating, writing).
+        error: the failure in one line; ``""`` unless failed.
+        median_error_deg: median angular error against the item's ground-truth normals
+            (``normals.npy`` / ``normals.png``), ``None`` without them or when failed; a
+            skipped item's comes from its ``metrics.json``.
+    """
+
+    item: str
+    status: str
+    seconds: float
+    error: str = ""
+    median_error_deg: Optional[float] = None
+
+
+@dataclass(frozen=True)
+class BatchResult:
+    """What :func:`run_batch` did: one :class:`BatchItem` per item folder, in name order.
+
+    Attributes:
+        items: the rows of ``summary.csv``.
+        summary: the path of ``summary.csv``.
+    """
+
+    items: Tuple[BatchItem, ...]
+    summary: Path
+
+    def count(self, status: str) -> int:
+        """How many items have ``status`` (``"ok"``, ``"failed"`` or ``"skipped"``)."""
+        return sum(item.status == status for item in self.items)
+
+
+def run_batch(cfg: DictConfig) -> BatchResult:
+    """Run the app on every item folder of ``cfg.input_dir``, one after the other.
+
+    Every item ``<input_dir>/<item>/`` holds ``image.png`` (or ``image.npy``) and
+    ``mask.png`` (or ``mask.npy``), optionally ``normals``, ``lighting.json`` and
+    ``camera.json``: the ``folder`` layout of :func:`sfs_torch.dataset_loaders.load_folder`.
+    Its outputs, those of a single-image run, go to ``<out>/<item>/``. An item that fails is
+    logged in one line and the batch goes on; one whose outputs are complete is skipped
+    (unless ``skip_done=false``). ``<out>/summary.csv`` is rewritten after every item.
+
+    Returns:
+        :class:`BatchResult`.
+
+    Raises:
+        ValueError: bad options; ``input_dir`` is not a folder, holds no item folder, or
+            holds ``out``; ``image``, ``mask`` or ``lighting`` is given too. All are
+            checked before any item is read.
+        FileNotFoundError: ``input_dir`` does not exist.
+    """
+    _device(cfg.device)
+    mesh_formats = _mesh_formats(cfg.mesh_formats)
+    out = _output_folder(cfg)
+    folders = _batch_folders(cfg, out)
+    pipeline_cfg = _pipeline_config(cfg)
+    expected = _expected_outputs(pipeline_cfg, mesh_formats)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = out / "summary.csv"
+    rows: List[BatchItem] = []
+    from tqdm import tqdm
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    bar = tqdm(folders, desc="sfs-torch", unit="item", dynamic_ncols=True)
+    with _quiet_stages(), logging_redirect_tqdm(), bar:
+        for folder in bar:
+            bar.set_postfix_str(", ".join([*_counts(rows), folder.name]))
+            rows.append(_batch_item(cfg, folder, out / folder.name, pipeline_cfg, mesh_formats, expected))
+            _write_summary(summary, rows)
+        bar.set_postfix_str(", ".join(_counts(rows)))
+    result = BatchResult(tuple(rows), summary)
+    log.info("%d ok, %d failed, %d skipped; summary in %s", result.count("ok"), result.count("failed"),
+             result.count("skipped"), summary.resolve())
+    return result
+
+
+def _counts(rows: List[BatchItem]) -> List[str]:
+    return [f"{n} {s}" for s in ("ok", "failed", "skipped") if (n := sum(r.status == s for r in rows))]
+
+
+def _batch_folders(cfg: DictConfig, out: Path) -> List[Path]:
+    """Check the batch options and ``input_dir``; return its item folders, sorted by name."""
+    given = [name for name in ("image", "mask", "lighting") if cfg[name] is not None]
+    if given:
+        raise ValueError(
+            f"input_dir runs every item folder of {cfg.input_dir}, so {given[0]}= cannot be given too: each item holds "
+            "its own image.png, mask.png and optional lighting.json (docs/batch.md)"
+        )
+    if not cfg.image_srgb:
+        raise ValueError(
+            "image_srgb=false does not apply to input_dir: an item's image.png is read as sRGB; store linear "
+            "images as image.npy (float (H, W, 3) in [0, 1]; docs/batch.md)"
+        )
+    root = Path(cfg.input_dir)
+    if not root.exists():
+        raise FileNotFoundError(f"input_dir: no such folder '{root}'")
+    if not root.is_dir():
+        raise ValueError(f"input_dir must be a folder of item folders, got the file '{root}'")
+    folders = [p for p in sorted(root.iterdir()) if p.is_dir() and not p.name.startswith((".", "_"))]
+    if not folders:
+        raise ValueError(
+            f"input_dir '{root}' holds no item folder: expected '{root}/<item>/image.png' (or image.npy) with "
+            "mask.png (or mask.npy) beside it (docs/batch.md)"
+        )
+    try:
+        inside = out.resolve().relative_to(root.resolve()).parts
+    except ValueError:
+        inside = None
+    if inside is not None and (not inside or not inside[0].startswith((".", "_"))):
+        raise ValueError(
+            f"out={out} is inside input_dir={root}: the outputs would mix with the items (name.png files, a "
+            "normals.npy read as ground truth); write them elsewhere"
+        )
+    return folders
+
+
+def _expected_outputs(pipeline_cfg: DictConfig, mesh_formats: Tuple[str, ...]) -> Tuple[str, ...]:
+    """The files a run with these options writes for every item."""
+    names = list(REQUIRED_OUTPUTS)
+    if pipeline_cfg.integrate.method is not None:
+        names += ["depth.npy", "depth.png", "depth.json", "novel_view.png", *(f"mesh.{kind}" for kind in mesh_formats)]
+    return tuple(names)
+
+
+def _batch_item(cfg: DictConfig, folder: Path, target: Path, pipeline_cfg: DictConfig,
+                mesh_formats: Tuple[str, ...], expected: Tuple[str, ...]) -> BatchItem:
+    """Run one item; a failure becomes a ``failed`` row (and one log line), never an exception."""
+    start = time.perf_counter()
+    if cfg.skip_done and all((target / name).is_file() for name in expected):
+        return BatchItem(folder.name, "skipped", time.perf_counter() - start,
+                         median_error_deg=_median_error(target / "metrics.json"))
+    try:
+        device = torch.device(cfg.device)
+        scene = _read_item(folder)
+        item_cfg = pipeline_cfg
+        camera = {key: value for key, value in (("focal", scene.focal), ("principal_point", scene.principal_point))
+                  if value is not None}
+        if camera:  # camera.json overrides camera.focal / camera.principal_point for this item
+            item_cfg = OmegaConf.merge(pipeline_cfg, {"camera": {k: list(v) if isinstance(v, tuple) else v
+                                                                 for k, v in camera.items()}})
+        known = scene.lighting[0] if scene.lighting_name == "given" else None
+        true_normals = None if scene.normals is None else scene.normals[0]
+        numbers = _estimate_and_publish(
+            target, scene.image[0].to(device), scene.mask[0].to(device), known, item_cfg, mesh_formats,
+            f"sfs-torch: {folder}", true_normals=true_normals, progress=False,
+        )
+    except Exception as err:  # one item's failure, whatever it is, must not stop the batch
+        message = " ".join(str(err).split())
+        if not isinstance(err, (ValueError, FileNotFoundError)):
+            message = f"{type(err).__name__}: {message}"
+        log.error("%s: failed: %s", folder.name, message)
+        log.debug("%s: traceback", folder.name, exc_info=True)
+        return BatchItem(folder.name, "failed", time.perf_counter() - start, error=message)
+    seconds = time.perf_counter() - start
+    median = numbers.get("median error (deg)")
+    log.info("%s: ok in %.1f s%s", folder.name, seconds, "" if median is None else f", median error {median:.2f} deg")
+    return BatchItem(folder.name, "ok", seconds, median_error_deg=median)
+
+
+def _read_item(folder: Path):
+    """One item in the ``folder`` layout, read and checked as :func:`~sfs_torch.dataset_loaders.load_folder` does."""
+    from .dataset_loaders import _folder_scene, _one_of
+
+    image = _one_of(folder, ("image.png", "image.npy"), required=True)
+    mask = _one_of(folder, ("mask.png", "mask.npy"), required=True)
+    normals = _one_of(folder, ("normals.npy", "normals.png"), required=False)
+    lighting, camera = folder / "lighting.json", folder / "camera.json"
+    return _folder_scene(folder, image, mask, normals, lighting if lighting.is_file() else None,
+                         camera if camera.is_file() else None)
+
+
+def _median_error(metrics_path: Path) -> Optional[float]:
+    try:
+        value = json.loads(metrics_path.read_text()).get("median error (deg)")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return value if isinstance(value, (int, float)) else None
+
+
+def _write_summary(path: Path, rows: List[BatchItem]) -> None:
+    """``summary.csv``, replaced atomically: one row per item, columns :data:`SUMMARY_COLUMNS`."""
+    import csv
+
+    partial = path.with_name(f".{path.name}.partial")
+    with open(partial, "w", newline="", encoding="utf-8") as f:
+        writer = csv.writer(f)
+        writer.writerow(SUMMARY_COLUMNS)
+        for row in rows:
+            median = "" if row.median_error_deg is None else f"{row.median_error_deg:.4f}"
+            writer.writerow([row.item, row.status, f"{row.seconds:.2f}", row.error, median])
+    os.replace(partial, path)
+
+
+@contextmanager
+def _quiet_stages() -> Iterator[None]:
+    """During a batch the pipeline's per-stage log lines and Python warnings go through logging (and
+    so clear of the progress bar); the stages only at WARNING."""
+    logger = logging.getLogger("sfs_torch.pipeline")
+    level = logger.level
+    logger.setLevel(logging.WARNING)
+    logging.captureWarnings(True)
+    try:
+        yield
+    finally:
+        logging.captureWarnings(False)
+        logger.setLevel(level)
+
+
 @hydra.main(version_base="1.3", config_path="pkg://sfs_torch.conf", config_name="config")
 def _main(cfg: DictConfig) -> None:
     try:
-        run(cfg)
+        if cfg.get("input_dir") is not None:
+            result = run_batch(cfg)
+            if result.count("failed"):
+                sys.exit(1)  # the batch ran to the end, but not every item succeeded
+        else:
+            run(cfg)
     except (ValueError, FileNotFoundError) as err:
         # A user error gets one clear line, not a stack trace.
         log.error("%s", err)

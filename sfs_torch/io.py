@@ -556,8 +556,8 @@ def read_depth_png(path: PathLike, *, scale: float, offset: float) -> DepthAndMa
 
     Args:
         path: a 16-bit grey PNG.
-        scale, offset: as returned by :func:`write_depth_png` (the CLI writes them into
-            ``depth.json``).
+        scale: as returned by :func:`write_depth_png` (the CLI writes it into ``depth.json``).
+        offset: as returned by :func:`write_depth_png` (likewise).
 
     Returns:
         :class:`DepthAndMask`: ``depth`` :math:`(1, H, W)` float32 ``scale * code + offset``

@@ -48,7 +48,8 @@ def render_novel_view(
     Args:
         mesh: surface in the original camera frame (e.g. :func:`sfs_torch.integrability.depth_to_mesh`).
         lighting: :math:`(3, 9)` SH lighting in the original camera frame.
-        azimuth_deg, elevation_deg: the new viewpoint.
+        azimuth_deg: the new viewpoint's azimuth in degrees.
+        elevation_deg: the new viewpoint's elevation in degrees.
         resolution: output size in pixels.
         background: grey level of pixels that miss the surface.
 

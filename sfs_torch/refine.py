@@ -262,7 +262,8 @@ def refine_shape_and_lighting(
             ``model="surface"`` with ``optimise_lighting``, the start of its fit.
         confidence: :math:`(B, 1, H, W)` non-negative per-pixel confidence of
             ``normals`` (e.g. the forest's kappa); ``None``: uniform.
-        focal, principal_point: camera; ``focal=None`` is orthographic.
+        focal: focal length in pixels; ``None`` is orthographic.
+        principal_point: ``(cx, cy)`` in pixels; default image centre.
         config: :class:`RefineConfig`.
         lighting_prior: natural-lighting prior (``None``: the packaged one).
 

@@ -107,7 +107,8 @@ class TestCLI:
         write_sphere(tmp_path)
         sweep = tmp_path / "sweep"
         args = ["-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", *TINY, "image=obj.png", "mask=obj_mask.png",
-                "forest.seed=0,1", f"out={sweep}"]
+                # the forest's normals, not the silhouette prior a sphere keeps, so the seeds show
+                "forest.seed=0,1", "reflectance_map.keep_prior=false", f"out={sweep}"]
         result = run_cli(args, tmp_path)
         assert result.returncode == 0, result.stderr
         assert "Joblib.Parallel(n_jobs=2" in result.stdout + result.stderr  # the joblib launcher ran the jobs
@@ -249,3 +250,169 @@ class TestAtomicOutputs:
         assert not any(p.is_dir() and p.name.startswith(".sfs-torch-partial-") for p in out.iterdir())
         decoded = io.read_normals_npy(out / "normals.npy")
         assert decoded.shape == (3, 48, 48)
+
+
+def write_item(folder, radius=18.0, truth=False, size=48):
+    """One batch item in the folder layout: ``image.png``, ``mask.png`` (+ ``normals.npy``)."""
+    normals, mask = sphere(size, radius)
+    image = (render_sh(normals[None], natural_lightings(0.7)["uffizi_gallery"][None])[0] * mask).clamp(0, 1)
+    io.write_image(folder / "image.png", image, bits=16)
+    io.write_image(folder / "mask.png", mask.float(), srgb=False)
+    if truth:
+        io.write_normals_npy(folder / "normals.npy", normals)
+    return folder
+
+
+def read_summary(out):
+    import csv
+
+    with open(out / "summary.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def compose_batch(overrides):
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module(config_module="sfs_torch.conf", version_base="1.3"):
+        return compose(config_name="config", overrides=[*TINY, *overrides])
+
+
+class TestBatch:
+    def test_runs_every_item_reports_failures_and_resumes(self, tmp_path):
+        photos = tmp_path / "photos"
+        write_item(photos / "a_sphere", truth=True)
+        write_item(photos / "b_sphere", radius=14.0)
+        broken = write_item(photos / "c_broken")
+        (broken / "mask.png").write_text("not an image")
+        (photos / "_notes").mkdir()  # ignored, as by load_folder
+        out = tmp_path / "results"
+        args = [*TINY, f"input_dir={photos}", f"out={out}"]
+
+        first = run_cli(args, tmp_path)
+        assert first.returncode == 1, first.stderr  # the batch ran to the end, one item failed
+        log = first.stdout + first.stderr
+        assert "Traceback" not in log
+        failure_lines = [line for line in log.splitlines() if "c_broken: failed:" in line]
+        assert len(failure_lines) == 1 and "mask.png" in failure_lines[0]
+        assert "2 ok, 1 failed, 0 skipped" in log
+        rows = read_summary(out)
+        assert list(rows[0]) == ["item", "status", "seconds", "error", "median_error_deg"]
+        assert [(r["item"], r["status"]) for r in rows] == [("a_sphere", "ok"), ("b_sphere", "ok"), ("c_broken", "failed")]
+        assert "mask.png" in rows[2]["error"] and rows[0]["error"] == rows[1]["error"] == ""
+        assert float(rows[0]["seconds"]) > 0 and float(rows[1]["seconds"]) > 0
+        for item in ("a_sphere", "b_sphere"):
+            for name in SPEC_FILES + ["summary.png", "metrics.json"]:
+                assert (out / item / name).is_file(), (item, name)
+            assert not list((out / item).glob(".sfs-torch-partial-*"))
+            assert np.load(out / item / "normals.npy").shape == (48, 48, 3)
+        assert not (out / "c_broken" / "normals.npy").exists() and not (out / "_notes").exists()
+        # the angular error against the ground truth normals, only where there are some
+        numbers = json.loads((out / "a_sphere" / "metrics.json").read_text())
+        assert float(rows[0]["median_error_deg"]) == pytest.approx(numbers["median error (deg)"], abs=1e-4)
+        # no worse than the silhouette prior, which a sphere may keep (reflectance_map.keep_prior)
+        assert 0 <= numbers["median error (deg)"] <= numbers["silhouette-only median (deg)"] + 1e-3
+        assert rows[1]["median_error_deg"] == "" and rows[2]["median_error_deg"] == ""
+        assert "median error (deg)" not in json.loads((out / "b_sphere" / "metrics.json").read_text())
+
+        # a rerun skips the finished items (their files untouched) and retries the failed one
+        stamps = {item: (out / item / "normals.npy").stat().st_mtime_ns for item in ("a_sphere", "b_sphere")}
+        again = run_cli(args, tmp_path)
+        assert again.returncode == 1, again.stderr
+        rows = read_summary(out)
+        assert [r["status"] for r in rows] == ["skipped", "skipped", "failed"]
+        assert float(rows[0]["median_error_deg"]) == pytest.approx(numbers["median error (deg)"], abs=1e-4)
+        assert {item: (out / item / "normals.npy").stat().st_mtime_ns for item in stamps} == stamps
+
+        # with the broken item repaired every item is ok or skipped: exit code 0
+        write_item(broken)
+        fixed = run_cli(args, tmp_path)
+        assert fixed.returncode == 0, fixed.stderr
+        assert [r["status"] for r in read_summary(out)] == ["skipped", "skipped", "ok"]
+        assert (out / "c_broken" / "normals.npy").is_file()
+
+    def test_missing_input_dir_is_one_clear_line(self, tmp_path):
+        result = run_cli([*TINY, f"input_dir={tmp_path / 'nowhere'}", "out=x"], tmp_path)
+        assert result.returncode == 2
+        assert "input_dir: no such folder" in result.stderr + result.stdout
+        assert "Traceback" not in result.stderr
+
+    @pytest.mark.parametrize(
+        "case, extra, match",
+        [
+            ("empty", [], "holds no item folder"),
+            ("only_hidden", [], "holds no item folder"),
+            ("file", [], "must be a folder of item folders"),
+            ("good", ["image=obj.png"], "image= cannot be given too"),
+            ("good", ["lighting=light.json"], "lighting= cannot be given too"),
+            ("good", ["image_srgb=false"], "store linear images as image.npy"),
+            ("out_inside", [], "is inside input_dir"),
+        ],
+    )
+    def test_checked_before_any_work(self, tmp_path, monkeypatch, case, extra, match):
+        import sfs_torch.cli as cli
+
+        def never(*args, **kwargs):
+            raise AssertionError("work started before input_dir was checked")
+
+        monkeypatch.setattr(cli, "_read_item", never)
+        monkeypatch.setattr(cli, "estimate", never)
+        photos, out = tmp_path / "photos", tmp_path / "r"
+        photos.mkdir()
+        if case == "only_hidden":
+            (photos / ".cache").mkdir()
+            (photos / "_old").mkdir()
+        elif case == "file":
+            photos.rmdir()
+            photos.write_text("a file")
+        elif case in ("good", "out_inside"):
+            (photos / "item").mkdir()
+            if case == "out_inside":
+                out = photos / "results"
+        cfg = compose_batch([f"input_dir={photos}", f"out={out}", *extra])
+        with pytest.raises(ValueError, match=match):
+            cli.run_batch(cfg)
+        assert not out.exists()
+
+    def test_item_files_reach_the_single_image_path(self, tmp_path, monkeypatch):
+        import sfs_torch.cli as cli
+
+        photos = tmp_path / "photos"
+        item = write_item(photos / "persp", truth=True)
+        sh = natural_lightings(0.7)["uffizi_gallery"]
+        io.write_lighting(item / "lighting.json", sh)
+        (item / "camera.json").write_text(json.dumps({"focal": 300.0, "principal_point": [20.0, 25.0]}))
+        write_item(photos / "plain")  # no lighting.json: estimated; no camera.json: the command's camera
+        calls = {}
+
+        def record(out, image, mask, known, pipeline_cfg, mesh_formats, title, **kwargs):
+            calls[out.name] = (image, mask, known, pipeline_cfg.camera, kwargs)
+            return {}
+
+        monkeypatch.setattr(cli, "_estimate_and_publish", record)
+        result = cli.run_batch(compose_batch([f"input_dir={photos}", f"out={tmp_path / 'r'}", "camera=persp"]))
+        assert [(r.item, r.status) for r in result.items] == [("persp", "ok"), ("plain", "ok")]
+        image, mask, known, camera, kwargs = calls["persp"]
+        assert image.shape == (3, 48, 48) and mask.shape == (1, 48, 48) and mask.dtype == torch.bool
+        assert torch.allclose(known, sh)
+        assert camera.focal == 300.0 and list(camera.principal_point) == [20.0, 25.0]
+        assert kwargs["true_normals"].shape == (3, 48, 48) and kwargs["progress"] is False
+        _, _, known, camera, kwargs = calls["plain"]
+        assert known is None and kwargs["true_normals"] is None
+        assert camera.focal == 1000.0 and camera.principal_point is None  # camera=persp's
+
+    def test_skip_done_false_recomputes(self, tmp_path, monkeypatch):
+        import sfs_torch.cli as cli
+
+        photos, out = tmp_path / "photos", tmp_path / "r"
+        write_item(photos / "a")
+        (out / "a").mkdir(parents=True)
+        for name in cli.REQUIRED_OUTPUTS:
+            (out / "a" / name).write_text("{}")
+        monkeypatch.setattr(cli, "_estimate_and_publish", lambda *args, **kwargs: {})
+        skipped = cli.run_batch(compose_batch([f"input_dir={photos}", f"out={out}"]))
+        assert [r.status for r in skipped.items] == ["skipped"]
+        # integrate= adds files: the item is incomplete for that run
+        deeper = cli.run_batch(compose_batch([f"input_dir={photos}", f"out={out}", "integrate=l2"]))
+        assert [r.status for r in deeper.items] == ["ok"]
+        redone = cli.run_batch(compose_batch([f"input_dir={photos}", f"out={out}", "skip_done=false"]))
+        assert [r.status for r in redone.items] == ["ok"]
