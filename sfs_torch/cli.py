@@ -29,11 +29,10 @@ import hydra  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from hydra.core.config_store import ConfigStore  # noqa: E402
-from hydra.core.hydra_config import HydraConfig  # noqa: E402
-from hydra.types import RunMode  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from . import io  # noqa: E402
+from ._app import exit_unless_writable, output_folder  # noqa: E402
 from .figures import confidence_display_max, summary_figure  # noqa: E402
 from .geometry_db import evaluation_shapes  # noqa: E402
 from .integrability import depth_to_mesh  # noqa: E402
@@ -201,18 +200,7 @@ def _device(name: str) -> torch.device:
 
 
 def _output_folder(cfg: DictConfig) -> Path:
-    """``out``; in a sweep (``-m``) or without ``out``, the job's Hydra output folder.
-
-    In a sweep every job gets its own subfolder (``hydra.sweep.dir/hydra.sweep.subdir``, the
-    sweep folder being ``out`` when given), so that parallel jobs never write into one folder.
-    """
-    if HydraConfig.initialized():
-        hydra_cfg = HydraConfig.get()
-        if not cfg.out or hydra_cfg.mode == RunMode.MULTIRUN:
-            return Path(hydra_cfg.runtime.output_dir)
-    if not cfg.out:
-        raise ValueError("out must be given when the config was not composed by the sfs-torch command")
-    return Path(cfg.out)
+    return output_folder(cfg, "sfs-torch")
 
 
 def run(cfg: DictConfig) -> Dict[str, float]:
@@ -548,16 +536,8 @@ def _main(cfg: DictConfig) -> None:
 def _check_out_argument(args: list) -> None:
     """Fail with one line when ``out=`` cannot be written, before Hydra sets up its log file there."""
     for arg in args:
-        if not arg.startswith("out=") or arg[4:] in ("", "null"):
-            continue
-        path = Path(arg[4:])
-        try:
-            path.mkdir(parents=True, exist_ok=True)
-            with tempfile.TemporaryFile(dir=path):
-                pass
-        except OSError as err:
-            print(f"sfs-torch: cannot write to out={path}: {err.strerror or err}", file=sys.stderr)
-            sys.exit(2)
+        if arg.startswith("out=") and arg[4:] not in ("", "null"):
+            exit_unless_writable(Path(arg[4:]), f"sfs-torch: cannot write to out={arg[4:]}")
 
 
 def main() -> None:

@@ -31,7 +31,6 @@ import re
 import shlex
 import statistics
 import sys
-import tempfile
 import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
@@ -49,6 +48,7 @@ from hydra.types import RunMode  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from torch import Tensor  # noqa: E402
 
+from ._app import exit_unless_writable, output_folder  # noqa: E402
 from .datasets import DEGRADATIONS, EVALUATION_LIGHTINGS, Scene  # noqa: E402
 from .metrics import lmse, normal_metrics  # noqa: E402
 from .pipeline import FeatureConfig, PipelineConfig, TrainingConfig, resolve_config  # noqa: E402
@@ -717,14 +717,7 @@ def _methods(value: Any) -> List[str]:
 
 
 def _output_folder(cfg: DictConfig) -> Path:
-    """``out``; in a sweep (``-m``) or without ``out``, the job's Hydra output folder."""
-    if HydraConfig.initialized():
-        hydra_cfg = HydraConfig.get()
-        if not cfg.out or hydra_cfg.mode == RunMode.MULTIRUN:
-            return Path(hydra_cfg.runtime.output_dir)
-    if not cfg.out:
-        raise ValueError("out must be given when the config was not composed by the sfs-torch-eval command")
-    return Path(cfg.out)
+    return output_folder(cfg, PROGRAM)
 
 
 def _command(cfg: DictConfig) -> str:
@@ -908,14 +901,7 @@ def _check_arguments(args: Sequence[str]) -> None:
                           file=sys.stderr)
                     sys.exit(2)
         if key == "out" and value not in ("", "null") and "," not in value:
-            path = Path(value)
-            try:
-                path.mkdir(parents=True, exist_ok=True)
-                with tempfile.TemporaryFile(dir=path):
-                    pass
-            except OSError as err:
-                print(f"{PROGRAM}: error: cannot write to out={path}: {err.strerror or err}", file=sys.stderr)
-                sys.exit(2)
+            exit_unless_writable(Path(value), f"{PROGRAM}: error: cannot write to out={value}")
 
 
 def main() -> None:
