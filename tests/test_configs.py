@@ -10,8 +10,10 @@ import sfs_torch.cli  # noqa: F401  (registers the config schema)
 from sfs_torch.pipeline import PipelineConfig
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
-# dataset/ belongs to the sfs-torch-eval app (conf/eval.yaml), composed in tests/test_evaluate.py
-GROUPS = sorted(p.name for p in CONF.iterdir() if p.is_dir() and p.name not in {"experiment", "dataset", "__pycache__"})
+# dataset/ and search/ belong to the sfs-torch-eval app (conf/eval.yaml), composed in
+# tests/test_evaluate.py and tests/test_sweeps.py
+GROUPS = sorted(p.name for p in CONF.iterdir()
+                if p.is_dir() and p.name not in {"experiment", "dataset", "search", "__pycache__"})
 
 
 def compose_app(overrides=()):

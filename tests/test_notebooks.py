@@ -5,7 +5,8 @@ import nbformat
 import pytest
 from nbclient import NotebookClient
 
-NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
+ROOT = Path(__file__).resolve().parents[1]
+NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
@@ -16,3 +17,9 @@ def test_notebook_runs(path, tmp_path):
     assert not errors
     images = [o for cell in notebook.cells for o in cell.get("outputs", []) if "image/png" in o.get("data", {})]
     assert images, "the notebook should draw its figures"
+
+
+def test_every_notebook_is_listed_in_the_docs():
+    listed = (ROOT / "docs" / "notebooks.md").read_text(encoding="utf-8")
+    assert {"quickstart", "reflectance_map", "integrability", "torch_modules"} <= {p.stem for p in NOTEBOOKS}
+    assert [p.name for p in NOTEBOOKS if f"`{p.name}`" not in listed] == []
