@@ -380,8 +380,6 @@ def estimate(
     if lighting is not None:
         train_cfg = replace(cfg, training=replace(cfg.training, brightness_jitter=0.0, colour_jitter=0.0))
     rounds = cfg.reflectance_map.refine_rounds if lighting is None else 0
-    if rounds < 0:
-        raise ValueError(f"reflectance_map.refine_rounds must be >= 0, got {rounds}")
     sh = sh.clone()
     normals = torch.zeros_like(image_b)
     confidence = torch.zeros_like(mask_b, dtype=image_b.dtype)
@@ -583,7 +581,12 @@ def _check_principal_point(principal_point: Any, focal: Optional[float]) -> Opti
 
 
 def _check_forest_config(cfg: PipelineConfig) -> None:
-    """Validate the forest's and its cache's options before any training set is shaded."""
+    """Validate the forest's, its cache's and the rounds' options before any database is loaded."""
+    rounds = cfg.reflectance_map.refine_rounds
+    if not (isinstance(rounds, int) and rounds >= 0):
+        raise ValueError(f"reflectance_map.refine_rounds must be an integer >= 0, got {rounds!r}")
+    if cfg.camera.normal_rotation not in ("centroid", "pixel"):
+        raise ValueError(f"camera.normal_rotation must be 'centroid' or 'pixel', got {cfg.camera.normal_rotation!r}")
     if cfg.training.cache_forests not in CACHE_POLICIES:
         raise ValueError(f"training.cache_forests must be one of {CACHE_POLICIES}, got {cfg.training.cache_forests!r}")
     if not (isinstance(cfg.training.max_cached_forests, int) and cfg.training.max_cached_forests >= 1):

@@ -302,6 +302,14 @@ class TestForestCache:
         sfs_torch.estimate(image, mask, config=config, progress=False)
         assert len(list(forests.glob("*.safetensors"))) == given + estimated
 
+    @pytest.mark.parametrize("config", [{"reflectance_map": {"refine_rounds": -1}},
+                                        {"camera": {"normal_rotation": "pxl"}}])
+    def test_round_and_rotation_options_fail_before_any_work(self, scene, monkeypatch, config):
+        _, mask, _, image = scene
+        monkeypatch.setattr(pipeline, "load_database", lambda *a, **k: pytest.fail("validated too late"))
+        with pytest.raises(ValueError, match="refine_rounds|normal_rotation"):
+            sfs_torch.estimate(image, mask, focal=50.0, config=dict(TINY, **config), progress=False)
+
     def test_unknown_policy_fails_before_training(self, scene, monkeypatch):
         _, mask, sh, image = scene
         monkeypatch.setattr(pipeline, "load_database", lambda *a, **k: pytest.fail("validated too late"))
