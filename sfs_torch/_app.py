@@ -6,6 +6,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
@@ -35,3 +36,17 @@ def exit_unless_writable(path: Path, message: str) -> None:
     except OSError as err:
         print(f"{message}: {err.strerror or err}", file=sys.stderr)
         sys.exit(2)
+
+
+def parse_device(name: str) -> torch.device:
+    """The ``device=`` option as a torch device, or one ``ValueError`` saying what is wrong and what to do."""
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {name!r}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(
+            f"device={name} but torch {torch.__version__} sees no CUDA device here; run with device=cpu, or "
+            "install a CUDA build of torch (README)"
+        )
+    return device

@@ -32,7 +32,7 @@ from hydra.core.config_store import ConfigStore  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from . import io  # noqa: E402
-from ._app import exit_unless_writable, output_folder  # noqa: E402
+from ._app import exit_unless_writable, output_folder, parse_device  # noqa: E402
 from .figures import confidence_display_max, summary_figure  # noqa: E402
 from .geometry_db import evaluation_shapes  # noqa: E402
 from .integrability import depth_to_mesh  # noqa: E402
@@ -187,16 +187,7 @@ def _publish(staging: Path, out: Path) -> None:
 
 
 def _device(name: str) -> torch.device:
-    try:
-        device = torch.device(name)
-    except (RuntimeError, TypeError):
-        raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {name!r}") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(
-            f"device={name} but torch {torch.__version__} sees no CUDA device here; run with device=cpu, or "
-            "install a CUDA build of torch (README)"
-        )
-    return device
+    return parse_device(name)
 
 
 def _output_folder(cfg: DictConfig) -> Path:

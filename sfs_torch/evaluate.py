@@ -48,7 +48,7 @@ from hydra.types import RunMode  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from torch import Tensor  # noqa: E402
 
-from ._app import exit_unless_writable, output_folder  # noqa: E402
+from ._app import exit_unless_writable, output_folder, parse_device  # noqa: E402
 from .datasets import DEGRADATIONS, EVALUATION_LIGHTINGS, Scene  # noqa: E402
 from .metrics import lmse, normal_metrics  # noqa: E402
 from .pipeline import FeatureConfig, PipelineConfig, TrainingConfig, resolve_config  # noqa: E402
@@ -695,13 +695,7 @@ def _figure(out: Path, scene: Scene, results: Mapping[str, MethodResult], partia
 
 
 def _device(name: str) -> torch.device:
-    try:
-        device = torch.device(name)
-    except (RuntimeError, TypeError):
-        raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {name!r}") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device={name} but torch {torch.__version__} sees no CUDA device here; run with device=cpu")
-    return device
+    return parse_device(name)
 
 
 def _methods(value: Any) -> List[str]:
