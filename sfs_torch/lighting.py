@@ -162,7 +162,8 @@ def _nonnegative_solution(gram: Tensor, rhs: Tensor, solution: Tensor, basis: Te
 
     Solves the dual of ``min 1/2 x^T G x - b^T x  s.t.  A x >= 0`` (a non-negative
     multiplier per direction) by accelerated projected gradient; the primal is
-    ``x = G^-1 (b + A^T lambda)``. Only runs where the unconstrained fit violates.
+    ``x = G^-1 (b + A^T lambda)``, its constant term raised by what violation the fixed number
+    of steps leaves. Only runs where the unconstrained fit violates.
     """
     if not bool(((basis @ solution) < 0).any()):
         return solution
@@ -177,7 +178,12 @@ def _nonnegative_solution(gram: Tensor, rhs: Tensor, solution: Tensor, basis: Te
         next_momentum = 0.5 * (1.0 + (1.0 + 4.0 * momentum * momentum) ** 0.5)
         y = new + ((momentum - 1.0) / next_momentum) * (new - lam)
         lam, momentum = new, next_momentum
-    return inverse @ (rhs + basis.T @ lam)
+    solution = inverse @ (rhs + basis.T @ lam)
+    # few samples make G nearly singular and the dual converge slowly: lift what violation is
+    # left with the constant term (Y0 > 0 everywhere), so the shading on ``basis`` is >= 0
+    lift = (-(basis @ solution).amin(1)).clamp_min(0)  # (B, 3)
+    solution[:, 0] = solution[:, 0] + lift / _C0
+    return solution
 
 
 def fit_sh(

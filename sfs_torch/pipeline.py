@@ -42,7 +42,7 @@ from .forest_cache import CACHE_POLICIES, evict_forests, forest_path, load_fores
 from .geometry_db import DatabaseConfig, GeometryDatabase, load_database
 from .image_formation import estimate_noise_sigma
 from .integrability import IntegrabilityConfig, integrate_convex, integrate_normals
-from .lighting import render_sh, rotate_sh, sh_basis_vectors
+from .lighting import fit_sh_vectors, render_sh, rotate_sh, sh_basis_vectors
 from .reflectance_map import (
     VALIDITY_DIRECTIONS,
     ReflectanceMapConfig,
@@ -369,6 +369,8 @@ def estimate(
     with timer("lighting"):
         if lighting is None:
             sh = estimate_lighting(image_b, mask_b, focal=focal, principal_point=principal_point, config=cfg.reflectance_map)
+            if cfg.reflectance_map.valid_refit:
+                sh = _nearest_valid_lighting(sh)
         else:
             sh = known_lighting.to(image_b.device)
     with timer("database"):
@@ -533,6 +535,24 @@ def _as_lighting(lighting: Any, batch: int) -> Tensor:
         raise ValueError(f"lighting must have shape (3, 9) or ({batch}, 3, 9), got {tuple(sh.shape)}")
     check_finite(sh, "lighting")
     return sh
+
+
+def _nearest_valid_lighting(sh: Tensor) -> Tensor:
+    """Lightings ``(B, 3, 9)`` that shade the visible hemisphere non-negatively: each one that
+    does unchanged, any other replaced by the least-squares nearest in its shading there.
+
+    The silhouette estimate is a fit to colours of the hemisphere matched to the image's
+    statistics, which can shade parts of it negative (6-9 % of the peak on saturated images);
+    every later refit is constrained, and the estimate that a dropped refit round falls back
+    to is then constrained too.
+    """
+    directions = hemisphere_directions(VALIDITY_DIRECTIONS, device=sh.device, dtype=torch.float64)
+    shading = _hemisphere_shading(sh.double())  # (B, M, 3)
+    valid = (shading >= 0).flatten(1).all(1)
+    if bool(valid.all()):
+        return sh
+    nearest = fit_sh_vectors(directions.expand(sh.shape[0], -1, -1), shading, nonnegative=directions)
+    return torch.where(valid[:, None, None], sh, nearest.to(sh.dtype))
 
 
 def _hemisphere_shading(sh: Tensor) -> Tensor:

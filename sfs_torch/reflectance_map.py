@@ -62,7 +62,8 @@ class ReflectanceMapConfig:
             forest's predicted normals (:func:`refit_lighting`) and a new forest is
             trained for it. 0 is the paper's method; each round costs one more forest.
         valid_refit: constrain those refits to a physically valid lighting
-            (:func:`refit_lighting`'s ``valid``).
+            (:func:`refit_lighting`'s ``valid``), and start them from the lighting nearest
+            this estimate that is one (it can shade parts of the hemisphere negative).
         keep_prior: used by :func:`sfs_torch.estimate`: return the silhouette prior
             (Eq. 10's coarse normals with their own refitted lighting, or with the given
             lighting) instead of the forest's normals when it explains the image better
@@ -204,8 +205,12 @@ def refit_lighting(image: Tensor, mask: Tensor, normals: Tensor, *, valid: bool 
 def _match_statistics(sh: Tensor, pixel_dirs: Tensor, pixel_colours: Tensor) -> Tensor:
     """Affinely adjust ``sh`` per channel so its shading of the mapped pixels has the image's mean and std."""
     shading = sh_basis_vectors(pixel_dirs) @ sh.T  # (N, 3)
-    # population std: a one-pixel object gets gain 0, a constant (ambient) lighting, not NaN
-    gain = pixel_colours.std(0, unbiased=False) / shading.std(0, unbiased=False).clamp_min(1e-8)
+    # population std: a one-pixel object gets gain 0, a constant (ambient) lighting, not NaN; so
+    # does a shading flat up to rounding (k covers every pixel of an object of <= min_k pixels),
+    # whose float32 noise a gain would otherwise amplify into the lighting
+    spread = shading.std(0, unbiased=False)
+    flat = spread <= 1e-5 * shading.abs().mean(0)
+    gain = torch.where(flat, 0.0, pixel_colours.std(0, unbiased=False) / spread.clamp_min(1e-8))
     offset = pixel_colours.mean(0) - gain * shading.mean(0)
     matched = sh * gain[:, None]
     matched[:, 0] = matched[:, 0] + offset / sh_basis_vectors(pixel_dirs[:1])[0, 0]
