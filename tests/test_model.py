@@ -1,23 +1,13 @@
 import pytest
 import torch
-from scenes import sphere
-from test_pipeline import TINY
+from test_pipeline import TINY, scene  # noqa: F401  (the shared sphere fixture)
 
 import sfs_torch
-from sfs_torch.lighting import natural_lightings, render_sh
 from sfs_torch.model import ShapeFromShading
 from sfs_torch.pipeline import Estimate, PipelineConfig, estimate, resolve_config
 
 # TINY without the stages that cost seconds on a CPU (photometric refinement, refit round)
 FAST = dict(TINY, refine={"when": "never"}, reflectance_map={"refine_rounds": 0, "keep_prior": False})
-
-
-@pytest.fixture(scope="module")
-def scene():
-    normals, mask = sphere()
-    sh = natural_lightings(0.7)["grace_cathedral"]
-    image = (render_sh(normals[None], sh[None])[0] * mask).clamp(0, 1)
-    return normals, mask, sh, image
 
 
 @pytest.fixture(scope="module")
