@@ -215,7 +215,7 @@ def form_image(normals: Tensor, mask: Tensor, sh: Tensor, config: FormationConfi
     image = torch.zeros(1, 3, *mask.shape[-2:], dtype=torch.float64)
     image[0].permute(1, 2, 0)[inside] = shading
     if gains is not None:
-        image = formation_ops.expose(image, 1.0, gains)
+        image = formation_ops.expose(image, gains)
     image = formation_ops.poisson_gaussian_noise(image, config.shot_noise, config.noise, generator).clamp(0, 1)
     if config.bits is not None:
         image = formation_ops.quantise_srgb(image, config.bits)

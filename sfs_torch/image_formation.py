@@ -176,10 +176,14 @@ def blinn_phong(normals: Tensor, view: Tensor, light: Tensor, colour: Tensor, sh
     return (lit * (normals * half).sum(-1).clamp_min(0) ** shininess)[:, None] * colour
 
 
-def expose(image: Tensor, exposure: float, gains: Tensor) -> Tensor:
-    """A camera's exposure and white-balance error: :math:`(B, 3, H, W) -> (B, 3, H, W)`, ``exposure * gains[c] * I_c``."""
+def expose(image: Tensor, gains: Tensor) -> Tensor:
+    """A camera's exposure and white-balance error: :math:`(B, 3, H, W) -> (B, 3, H, W)`, ``gains[c] * I_c``.
+
+    ``gains`` :math:`(3,)` is the exposure times each channel's white-balance gain
+    (:func:`sfs_torch.datasets.camera_gains`).
+    """
     check_shape(image, "image", "B 3 H W")
-    return image * exposure * gains.to(image).view(1, 3, 1, 1)
+    return image * gains.to(image).view(1, 3, 1, 1)
 
 
 def poisson_gaussian_noise(image: Tensor, gain: float, sigma: float, generator: torch.Generator) -> Tensor:

@@ -120,7 +120,7 @@ class TestCameraEffects:
     def test_expose_scales(self):
         image = torch.rand(2, 3, 4, 4)
         gains = torch.tensor([1.1, 1.0, 0.9])
-        assert torch.allclose(expose(image, 1.5, gains), image * 1.5 * gains.view(1, 3, 1, 1))
+        assert torch.allclose(expose(image, 1.5 * gains), image * 1.5 * gains.view(1, 3, 1, 1))
 
     def test_poisson_gaussian_variance(self):
         image = torch.full((1, 3, 200, 200), 0.5, dtype=torch.float64)
