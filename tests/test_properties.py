@@ -4,8 +4,9 @@ Masks come in the shapes that break silhouette code: a single pixel, a few pixel
 one or two pixels wide, objects with holes, several components and objects cut by the
 image border. Lightings are physically valid SH lightings: a positive constant term plus
 a bounded random rest, kept only when they shade the whole visible hemisphere
-non-negatively (:func:`sfs_torch.lighting.render_sphere`). Each property runs on a few
-examples with sizes kept small, so that the file runs in about a minute on two cores.
+non-negatively on the directions the pipeline checks validity on. Each property runs on a
+few examples with sizes kept small, so that the file runs in about a minute on two cores;
+the examples are derandomised (the same ones every run), so that CI is reproducible.
 """
 import math
 import re
@@ -18,7 +19,7 @@ from hypothesis import strategies as st
 
 import sfs_torch
 from sfs_torch.integrability import integrate_normals
-from sfs_torch.lighting import fit_sh, render_sh, render_sphere, sh_basis_vectors
+from sfs_torch.lighting import fit_sh, render_sh, sh_basis_vectors
 from sfs_torch.reflectance_map import (
     VALIDITY_DIRECTIONS,
     ReflectanceMapConfig,
@@ -32,8 +33,8 @@ from sfs_torch.silhouette import coarse_normals, silhouette_features
 from test_pipeline import TINY
 
 # no example database in the working tree; shrinking still reports the smallest failure
-FAST = settings(max_examples=25, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
-SLOW = settings(max_examples=5, deadline=None, database=None,
+FAST = settings(max_examples=25, deadline=None, database=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+SLOW = settings(max_examples=5, deadline=None, database=None, derandomize=True,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much])
 
 MASK_KINDS = ("single", "tiny", "line", "holed", "multi", "border", "blob")
@@ -121,8 +122,14 @@ def lightings(draw, max_rest=0.35):
     constant = torch.tensor(draw(st.lists(st.floats(0.6, 3.0), min_size=3, max_size=3)))
     rest = torch.tensor(draw(st.lists(st.floats(-1.0, 1.0), min_size=24, max_size=24))).view(3, 8)
     sh = torch.cat([constant[:, None], draw(st.floats(0.0, max_rest)) * constant[:, None] * rest], 1)
-    assume(float(render_sphere(sh, 48).min()) >= 0)
+    # the toolkit's own test of validity: render_sh clips at 0, so a rendered sphere cannot tell
+    assume(float(hemisphere_shading(sh[None]).min()) >= 0)
     return sh
+
+
+def hemisphere_shading(sh):
+    """What lightings ``(B, 3, 9)`` shade on the directions the pipeline checks validity on."""
+    return sh_basis_vectors(hemisphere_directions(VALIDITY_DIRECTIONS)) @ sh.transpose(1, 2)
 
 
 def shaded(mask, sh, seed, noise=0.02):
@@ -239,7 +246,7 @@ class TestLightingProperties:
         anything = torch.tensor(rest).view(1, 3, 9)
         lights = torch.cat([anything, sh[None]])
         nearest = _nearest_valid_lighting(lights)
-        shading = sh_basis_vectors(hemisphere_directions(VALIDITY_DIRECTIONS)) @ nearest.transpose(1, 2)
+        shading = hemisphere_shading(nearest)
         assert bool(torch.isfinite(nearest).all())
         assert float(shading.min()) >= -1e-6 * max(float(shading.max()), 1.0)
         assert torch.equal(nearest[1], sh)  # valid: unchanged
