@@ -420,7 +420,8 @@ def estimate(
             with timer("prior check"):
                 prior = _better_prior(image_b[b : b + 1], mask_b[b : b + 1], normals[b : b + 1], sh[b : b + 1],
                                       focal, principal_point, refit=lighting is None,
-                                      valid=cfg.reflectance_map.valid_refit)
+                                      valid=cfg.reflectance_map.valid_refit,
+                                      forest_score=None if best is None else best[0])
             if prior is not None:
                 normals[b], sh[b] = prior[0][0], prior[1][0]
                 # the prior carries no per-pixel confidence: the forest's median everywhere
@@ -484,21 +485,24 @@ def _with_image_noise(cfg: PipelineConfig, image: Tensor, mask: Tensor) -> Pipel
 
 
 def _better_prior(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, focal: Optional[float],
-                  principal_point: Optional[tuple], *, refit: bool, valid: bool) -> Optional[tuple]:
+                  principal_point: Optional[tuple], *, refit: bool, valid: bool,
+                  forest_score: Optional[float] = None) -> Optional[tuple]:
     """The silhouette prior ``(normals, lighting)`` if it explains the image better than the forest's pair, else ``None``.
 
     The prior is Eq. 10's coarse normal field with, for an estimated lighting, its own
     :func:`refit_lighting` (for a given lighting, that lighting); both pairs are scored by
-    :func:`photometric_residual`. A blob-like object (a sphere above all) is the prior's
-    case: there the forest's colour cue only adds error.
+    :func:`photometric_residual` (the forest pair's ``forest_score`` when the refit rounds
+    already computed it). A blob-like object (a sphere above all) is the prior's case: there
+    the forest's colour cue only adds error.
     """
     coarse = coarse_normals(mask, focal=focal, principal_point=principal_point).to(normals.dtype)
     prior_sh = refit_lighting(image, mask, coarse, valid=valid) if refit else sh
-    forest_score = photometric_residual(normals, sh, image, mask)
-    prior_score = photometric_residual(coarse, prior_sh, image, mask)
-    if bool(prior_score < forest_score):
+    if forest_score is None:
+        forest_score = float(photometric_residual(normals, sh, image, mask)[0])
+    prior_score = float(photometric_residual(coarse, prior_sh, image, mask)[0])
+    if prior_score < forest_score:
         log.info("keeping the silhouette prior: it explains the image better (residual %.4f vs %.4f)",
-                 float(prior_score), float(forest_score))
+                 prior_score, forest_score)
         return coarse, prior_sh
     return None
 
