@@ -1,11 +1,15 @@
-"""Pipeline options side by side on the TUNING side: validation shapes, Poly Haven lightings.
+"""Pipeline options side by side: on the TUNING side by default (validation shapes, Poly Haven lightings).
 
 Each variant is a set of pipeline config overrides (JSON); every variant scores the same
 images (``sfs_torch.datasets``' validation side, never the shapes or R&H lightings the
-benchmarks report on) with the lighting estimated, or given with ``--known``.
+benchmarks report on) with the lighting estimated, or given with ``--known`` (for one
+variant: ``"lighting": "known"`` among its overrides).
+``--side test`` scores the test side instead (held-out shapes, R&H lightings): for
+reporting an ablation of choices already made, never for making one.
 
     python benchmarks/tune.py --variants '{}' '{"training": {"brightness_jitter": 0.1}}'
     python benchmarks/tune.py --degradation all --shapes 4 --lights 3 --variants '{}' ...
+    python benchmarks/tune.py --side test --shapes 5 --lights 3 --variants '{"reflectance_map": {"refine_rounds": 0}}' '{}'
 """
 from __future__ import annotations
 
@@ -19,12 +23,21 @@ from pathlib import Path
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import sfs_torch  # noqa: E402
-from sfs_torch.datasets import DEGRADATIONS, scene_shapes, synthetic_scenes, validation_lightings  # noqa: E402
+from sfs_torch.datasets import (  # noqa: E402
+    DEGRADATIONS,
+    evaluation_lightings,
+    scene_shapes,
+    synthetic_scenes,
+    validation_lightings,
+)
 from sfs_torch.metrics import lmse, normal_metrics  # noqa: E402
+from sfs_torch.silhouette import coarse_normals  # noqa: E402
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--side", choices=["validation", "test"], default="validation",
+                        help="validation: tune on it; test: report an ablation on it")
     parser.add_argument("--shapes", type=int, default=3)
     parser.add_argument("--lights", type=int, default=3)
     parser.add_argument("--resolution", type=int, default=256)
@@ -36,33 +49,43 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "tune.json")
     args = parser.parse_args()
     variants = [json.loads(v) for v in args.variants]
-    shapes = scene_shapes(args.shapes, "validation", sphere=not args.no_sphere)
+    shapes = scene_shapes(args.shapes, args.side, sphere=not args.no_sphere)
+    lightings = validation_lightings(args.lights) if args.side == "validation" else evaluation_lightings(args.lights)
     rows = []
-    for scene in synthetic_scenes(shapes, validation_lightings(args.lights), resolution=args.resolution,
+    for scene in synthetic_scenes(shapes, lightings, resolution=args.resolution,
                                   focal=args.focal, formation=DEGRADATIONS[args.degradation]):
-        row = {"case": scene.name}
+        coarse = coarse_normals(scene.mask, focal=args.focal)
+        row = {"case": scene.name, "silhouette": float(normal_metrics(coarse, scene.normals, scene.mask).median[0])}
         for i, overrides in enumerate(variants):
-            config = {**overrides, "training": {"cache_forests": "never", **overrides.get("training", {})}}
+            known = args.known or overrides.get("lighting") == "known"
+            config = {k: v for k, v in overrides.items() if k != "lighting"}
+            config["training"] = {"cache_forests": "never", **overrides.get("training", {})}
             start = time.perf_counter()
             est = sfs_torch.estimate(scene.image, scene.mask, focal=args.focal, config=config, progress=False,
-                                     lighting=scene.lighting if args.known else None)
+                                     lighting=scene.lighting if known else None)
             row[f"seconds_{i}"] = time.perf_counter() - start
             row[f"error_{i}"] = float(normal_metrics(est.normals, scene.normals, scene.mask).median[0])
             row[f"lmse_{i}"] = float(lmse(est.lighting, scene.lighting)[0])
         rows.append(row)
         print(f"{scene.name:<48}" + "".join(f"{row[f'error_{i}']:7.2f}" for i in range(len(variants))), flush=True)
-    print(f"\n{len(rows)} images, {args.degradation}, {'known' if args.known else 'estimated'} lighting")
+    print(f"\n{len(rows)} images ({args.side} side), {args.degradation}, "
+          f"{'known' if args.known else 'estimated'} lighting")
     print(f"{'variant':<8}{'median':>8}{'mean':>8}{'lMSE':>9}{'s/call':>8}  overrides")
+    silhouette = statistics.median(r["silhouette"] for r in rows)
+    print(f"{'prior':<8}{silhouette:>8.2f}{statistics.mean(r['silhouette'] for r in rows):>8.2f}"
+          f"{'':>17}  the silhouette prior (Eq. 10)")
     summary = []
     for i, overrides in enumerate(variants):
         errors = [r[f"error_{i}"] for r in rows]
         summary.append({"overrides": overrides, "median": statistics.median(errors), "mean": statistics.mean(errors),
+                        "ratio_to_prior": statistics.median(errors) / silhouette,
                         "lmse": statistics.median(r[f"lmse_{i}"] for r in rows),
                         "seconds": statistics.median(r[f"seconds_{i}"] for r in rows)})
         s = summary[-1]
         print(f"{i:<8}{s['median']:>8.2f}{s['mean']:>8.2f}{s['lmse']:>9.5f}{s['seconds']:>8.1f}  {json.dumps(overrides)}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "summary": summary,
+    args.out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "silhouette": silhouette,
+                                    "summary": summary,
                                     "rows": rows}, indent=2))
     print(f"wrote {args.out}")
 
