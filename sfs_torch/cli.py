@@ -38,8 +38,9 @@ from .geometry_db import evaluation_shapes  # noqa: E402
 from .integrability import depth_to_mesh  # noqa: E402
 from .lighting import natural_lightings, render_sh, render_sphere  # noqa: E402
 from .metrics import lmse, normal_metrics  # noqa: E402
-from .novel_view import render_novel_view  # noqa: E402
+from .novel_view import NovelViewConfig, render_novel_view  # noqa: E402
 from .pipeline import Estimate, PipelineConfig, estimate  # noqa: E402
+from .preview import RENDERERS, RendererChoice, _check_name, choose_renderer, gl_context  # noqa: E402
 from .rendering import random_view_rotations, render_normals  # noqa: E402
 from .silhouette import coarse_normals  # noqa: E402
 
@@ -86,6 +87,8 @@ class AppConfig(PipelineConfig):
     # mesh files written when there is a depth map: any of io.MESH_FORMATS ("ply", "obj",
     # "glb"); [] for none. Typed Any so that a bad value reaches _mesh_formats' one-line error.
     mesh_formats: Any = field(default_factory=lambda: ["ply"])
+    # novel_view.png (with a depth map): renderer auto | pyrender | embree, viewpoint, size (docs/rendering.md)
+    novel_view: NovelViewConfig = field(default_factory=NovelViewConfig)
     demo: DemoConfig = field(default_factory=DemoConfig)
 
 
@@ -138,7 +141,51 @@ def _mesh_formats(value: Any) -> Tuple[str, ...]:
     return tuple(dict.fromkeys(name.lower() for name in names))
 
 
-def _write_outputs(out: Path, est: Estimate, camera: DictConfig, mesh_formats: Tuple[str, ...]) -> None:
+@dataclass(frozen=True)
+class _NovelView:
+    """``novel_view`` checked: the viewpoint, and the renderer resolved (``None`` when no novel view is drawn)."""
+
+    choice: Optional[RendererChoice]
+    azimuth_deg: float
+    elevation_deg: float
+    resolution: int
+
+
+def _novel_view(cfg: DictConfig, pipeline_cfg: DictConfig) -> _NovelView:
+    """Validate ``novel_view`` and resolve its renderer, before any work.
+
+    The renderer is resolved (an OpenGL context made, ~1 s) only when a novel view will be
+    drawn, i.e. with ``integrate=...``; its name is checked always.
+    """
+    view = cfg.get("novel_view") or OmegaConf.structured(NovelViewConfig)
+    try:
+        azimuth, elevation, resolution = float(view.azimuth_deg), float(view.elevation_deg), view.resolution
+    except (TypeError, ValueError):
+        raise ValueError(f"novel_view.azimuth_deg and elevation_deg must be numbers, got {view.azimuth_deg!r}, "
+                         f"{view.elevation_deg!r}") from None
+    if not (np.isfinite(azimuth) and np.isfinite(elevation)):
+        raise ValueError(f"novel_view.azimuth_deg and elevation_deg must be finite, got {azimuth}, {elevation}")
+    if not (isinstance(resolution, int) and not isinstance(resolution, bool) and resolution > 0):
+        raise ValueError(f"novel_view.resolution must be a positive integer, got {resolution!r}")
+    try:
+        name = _check_name(view.renderer)
+    except ValueError:
+        raise ValueError(f"novel_view.renderer must be one of {', '.join(RENDERERS)}, got {view.renderer!r}") from None
+    if pipeline_cfg.integrate.method is None:  # no depth map, no novel view: nothing to draw
+        return _NovelView(None, azimuth, elevation, resolution)
+    context = None if name == "embree" else gl_context()
+    if name == "pyrender" and not context.available:
+        raise ValueError(
+            f"novel_view.renderer=pyrender needs an offscreen OpenGL context, but {context.reason}; use "
+            "novel_view.renderer=auto (falls back to the Embree ray caster) or embree (docs/rendering.md)"
+        )
+    choice = choose_renderer(name, context)
+    log.info("novel view renderer: %s", choice.reason)
+    return _NovelView(choice, azimuth, elevation, resolution)
+
+
+def _write_outputs(out: Path, est: Estimate, camera: DictConfig, mesh_formats: Tuple[str, ...],
+                   novel_view: Optional[_NovelView] = None) -> None:
     normals = est.normals.cpu()
     io.write_normals_npy(out / "normals.npy", normals)
     io.write_normals_png(out / "normals.png", normals)
@@ -157,7 +204,11 @@ def _write_outputs(out: Path, est: Estimate, camera: DictConfig, mesh_formats: T
         vertex_normals = est.normals.cpu()[:, mask].T
         for kind in mesh_formats:
             io.write_mesh(out / f"mesh.{kind}", mesh, vertex_normals=vertex_normals)
-        io.write_image(out / "novel_view.png", render_novel_view(mesh, est.lighting.cpu()))
+        view = novel_view or _NovelView(None, 35.0, 20.0, 256)
+        renderer = "embree" if view.choice is None else view.choice.name
+        image = render_novel_view(mesh, est.lighting.cpu(), azimuth_deg=view.azimuth_deg, elevation_deg=view.elevation_deg,
+                                  resolution=view.resolution, renderer=renderer)
+        io.write_image(out / "novel_view.png", image)
 
 
 def _depth_description(decode: Dict[str, float], camera: DictConfig) -> Dict[str, Any]:
@@ -207,6 +258,7 @@ def run(cfg: DictConfig) -> Dict[str, float]:
     mesh_formats = _mesh_formats(cfg.mesh_formats)
     out = _output_folder(cfg)
     pipeline_cfg = _pipeline_config(cfg)
+    novel_view = _novel_view(cfg, pipeline_cfg)
     true_normals = true_lighting = None
     if cfg.image is None:
         if cfg.mask is not None:
@@ -222,7 +274,8 @@ def run(cfg: DictConfig) -> Dict[str, float]:
         known = io.read_lighting(cfg.lighting) if cfg.lighting else None
         title = f"sfs-torch: {cfg.image}"
     numbers = _estimate_and_publish(
-        out, image, mask, known, pipeline_cfg, mesh_formats, title, true_normals=true_normals, true_lighting=true_lighting
+        out, image, mask, known, pipeline_cfg, mesh_formats, title, true_normals=true_normals, true_lighting=true_lighting,
+        novel_view=novel_view,
     )
     for key, value in numbers.items():
         log.info("%-32s %.4g", key, value)
@@ -233,13 +286,14 @@ def run(cfg: DictConfig) -> Dict[str, float]:
 def _estimate_and_publish(
     out: Path, image: torch.Tensor, mask: torch.Tensor, known: Optional[torch.Tensor], pipeline_cfg: DictConfig,
     mesh_formats: Tuple[str, ...], title: str, *, true_normals: Optional[torch.Tensor] = None,
-    true_lighting: Optional[torch.Tensor] = None, progress: bool = True,
+    true_lighting: Optional[torch.Tensor] = None, progress: bool = True, novel_view: Optional[_NovelView] = None,
 ) -> Dict[str, float]:
     """Estimate one image and publish its outputs into ``out``; return the key numbers.
 
     The single-image path of the command, shared by the demo, ``image=`` and every item of
     a batch. ``image`` is :math:`(3, H, W)`, ``mask`` :math:`(1, H, W)`; ``true_normals``
-    :math:`(3, H, W)` and ``true_lighting`` :math:`(3, 9)`, when known, are scored.
+    :math:`(3, H, W)` and ``true_lighting`` :math:`(3, 9)`, when known, are scored;
+    ``novel_view`` (:func:`_novel_view`) draws ``novel_view.png`` (default: the ray caster).
     """
     est = estimate(image, mask, lighting=known, config=pipeline_cfg, progress=progress)
     # every file is written under a hidden staging folder first and renamed into place
@@ -247,7 +301,7 @@ def _estimate_and_publish(
     out.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=".sfs-torch-partial-", dir=out))
     try:
-        _write_outputs(staging, est, pipeline_cfg.camera, mesh_formats)
+        _write_outputs(staging, est, pipeline_cfg.camera, mesh_formats, novel_view)
         numbers = _finish(staging, est, image, mask, title, true_normals, true_lighting)
         _publish(staging, out)
     finally:
@@ -357,6 +411,7 @@ def run_batch(cfg: DictConfig) -> BatchResult:
     out = _output_folder(cfg)
     folders = _batch_folders(cfg, out)
     pipeline_cfg = _pipeline_config(cfg)
+    novel_view = _novel_view(cfg, pipeline_cfg)
     expected = _expected_outputs(pipeline_cfg, mesh_formats)
     out.mkdir(parents=True, exist_ok=True)
     summary = out / "summary.csv"
@@ -368,7 +423,7 @@ def run_batch(cfg: DictConfig) -> BatchResult:
     with _quiet_stages(), logging_redirect_tqdm(), bar:
         for folder in bar:
             bar.set_postfix_str(", ".join([*_counts(rows), folder.name]))
-            rows.append(_batch_item(cfg, folder, out / folder.name, pipeline_cfg, mesh_formats, expected))
+            rows.append(_batch_item(cfg, folder, out / folder.name, pipeline_cfg, mesh_formats, expected, novel_view))
             _write_summary(summary, rows)
         bar.set_postfix_str(", ".join(_counts(rows)))
     result = BatchResult(tuple(rows), summary)
@@ -426,7 +481,8 @@ def _expected_outputs(pipeline_cfg: DictConfig, mesh_formats: Tuple[str, ...]) -
 
 
 def _batch_item(cfg: DictConfig, folder: Path, target: Path, pipeline_cfg: DictConfig,
-                mesh_formats: Tuple[str, ...], expected: Tuple[str, ...]) -> BatchItem:
+                mesh_formats: Tuple[str, ...], expected: Tuple[str, ...],
+                novel_view: Optional[_NovelView] = None) -> BatchItem:
     """Run one item; a failure becomes a ``failed`` row (and one log line), never an exception."""
     start = time.perf_counter()
     if cfg.skip_done and all((target / name).is_file() for name in expected):
@@ -445,7 +501,7 @@ def _batch_item(cfg: DictConfig, folder: Path, target: Path, pipeline_cfg: DictC
         true_normals = None if scene.normals is None else scene.normals[0]
         numbers = _estimate_and_publish(
             target, scene.image[0].to(device), scene.mask[0].to(device), known, item_cfg, mesh_formats,
-            f"sfs-torch: {folder}", true_normals=true_normals, progress=False,
+            f"sfs-torch: {folder}", true_normals=true_normals, progress=False, novel_view=novel_view,
         )
     except Exception as err:  # one item's failure, whatever it is, must not stop the batch
         message = " ".join(str(err).split())

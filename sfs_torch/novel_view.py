@@ -1,24 +1,43 @@
 """The recovered surface seen from a new viewpoint, shaded with the estimated lighting
 (the paper's Fig. 1, right).
 
-The depth map's mesh is centred, scaled to the unit bounding sphere and ray cast from a
-camera turned by ``azimuth`` about the vertical axis and tilted by ``elevation``
-(:func:`sfs_torch.rendering.render_normals`), then shaded with the lighting expressed
-in that camera's frame.
+The depth map's mesh is centred, scaled to the unit bounding sphere and drawn from a
+camera turned by ``azimuth`` about the vertical axis and tilted by ``elevation``, then
+shaded with the lighting expressed in that camera's frame
+(:func:`sfs_torch.preview.render_shaded`): by pyrender's OpenGL rasteriser where an
+offscreen context exists, else by the Embree ray caster (``renderer``; ``docs/rendering.md``).
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 import trimesh
 from torch import Tensor
 
-from .lighting import render_sh, rotate_sh
-from .rendering import render_normals
+from .preview import render_shaded
 
-__all__ = ["view_rotation", "render_novel_view"]
+__all__ = ["NovelViewConfig", "view_rotation", "render_novel_view"]
+
+
+@dataclass
+class NovelViewConfig:
+    """The command's ``novel_view.png`` (written with a depth map, ``integrate=...``).
+
+    Attributes:
+        renderer: ``auto`` (pyrender where an offscreen OpenGL context exists, else the
+            Embree ray caster), ``pyrender`` or ``embree`` (:func:`sfs_torch.preview.choose_renderer`).
+        azimuth_deg: the viewpoint's turn about the vertical axis, degrees.
+        elevation_deg: its tilt, degrees (positive looks from above).
+        resolution: image size in pixels.
+    """
+
+    renderer: str = "auto"
+    azimuth_deg: float = 35.0
+    elevation_deg: float = 20.0
+    resolution: int = 256
 
 
 def view_rotation(azimuth_deg: float, elevation_deg: float) -> Tensor:
@@ -42,6 +61,7 @@ def render_novel_view(
     elevation_deg: float = 20.0,
     resolution: int = 256,
     background: float = 1.0,
+    renderer: str = "auto",
 ) -> Tensor:
     """Shade a camera-frame surface mesh from a novel viewpoint.
 
@@ -52,9 +72,14 @@ def render_novel_view(
         elevation_deg: the new viewpoint's elevation in degrees.
         resolution: output size in pixels.
         background: grey level of pixels that miss the surface.
+        renderer: ``"auto"``, ``"pyrender"`` or ``"embree"`` (:func:`sfs_torch.preview.choose_renderer`).
 
     Returns:
         :math:`(3, R, R)` linear RGB in [0, 1].
+
+    Raises:
+        ValueError: a bad lighting, an empty mesh, an unknown renderer, or ``"pyrender"``
+            where no OpenGL context can be made.
     """
     if lighting.shape != (3, 9):
         raise ValueError(f"lighting must have shape (3, 9), got {tuple(lighting.shape)}")
@@ -65,8 +90,4 @@ def render_novel_view(
     unit.apply_translation(-(lo + hi) / 2)
     unit.apply_scale(1.0 / max(float(np.linalg.norm(unit.vertices, axis=1).max()), 1e-12))
     rotation = view_rotation(azimuth_deg, elevation_deg)
-    view = render_normals(unit, rotation, resolution)
-    # A normal n in the original frame appears as R n in the new one: light it alike.
-    sh = rotate_sh(lighting.to(torch.float64), rotation).float()
-    shaded = render_sh(view.normals[None], sh[None])[0].clamp(0, 1)
-    return torch.where(view.mask, shaded, torch.full_like(shaded, background))
+    return render_shaded(unit, lighting, rotation, resolution, renderer=renderer, background=background).image

@@ -5,7 +5,9 @@ barycentric interpolation of the mesh's vertex normals (smooth shading), rotated
 the camera frame (SPEC: x right, y up, z towards the viewer) and flipped where it faces
 away from the camera (meshes with broken winding, or back faces seen through holes).
 Unlike a rasteriser this gives float normals without quantisation, no anti-aliased rim
-pixels and exact depth, for orthographic and perspective cameras alike.
+pixels and exact depth, for orthographic and perspective cameras alike: the training
+database is always ray cast. Previews (the novel view) may be rasterised by pyrender
+instead, with the same camera (:mod:`sfs_torch.preview`).
 
 Framing: the world origin projects to the image centre. Orthographic: the unit sphere
 (the bounding sphere of a normalised mesh) has a radius of ``scale * resolution / 2``
@@ -16,7 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional, Union
+from typing import Optional, Tuple, Union
 
 import numpy as np
 import torch
@@ -57,6 +59,28 @@ def camera_distance(resolution: int, focal: float, scale: float) -> float:
     return 1.0 / math.sin(math.atan(half / focal))
 
 
+def _check_view(
+    rotation: Union[Tensor, np.ndarray], resolution: int, focal: Optional[float], distance: Optional[float], scale: float
+) -> Tuple[np.ndarray, float]:
+    """Validate a view's arguments (shared with :mod:`sfs_torch.preview`); return the rotation and the distance."""
+    rot = np.asarray(rotation.detach().cpu() if isinstance(rotation, Tensor) else rotation, dtype=np.float64)
+    if rot.shape != (3, 3) or not np.isfinite(rot).all():
+        raise ValueError(f"rotation must be a finite (3, 3) matrix, got shape {rot.shape}")
+    if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-5) or np.linalg.det(rot) < 0:
+        raise ValueError("rotation must be a proper rotation matrix (R R^T = I, det R = 1)")
+    if not (isinstance(resolution, (int, np.integer)) and resolution > 0):
+        raise ValueError(f"resolution must be a positive integer, got {resolution!r}")
+    if focal is not None and not focal > 0:
+        raise ValueError(f"focal must be a positive focal length in pixels or None, got {focal}")
+    if not scale > 0:
+        raise ValueError(f"scale must be positive, got {scale}")
+    if distance is None:
+        distance = 3.0 if focal is None else camera_distance(resolution, focal, scale)
+    if not distance > 0:
+        raise ValueError(f"distance must be positive, got {distance}")
+    return rot, float(distance)
+
+
 def render_normals(
     mesh: trimesh.Trimesh,
     rotation: Union[Tensor, np.ndarray],
@@ -92,22 +116,7 @@ def render_normals(
         >>> r.normals.shape, bool(r.mask[0, 16, 16]), round(float(r.normals[2, 16, 16]), 2)
         (torch.Size([3, 32, 32]), True, 1.0)
     """
-    rot = np.asarray(rotation.detach().cpu() if isinstance(rotation, Tensor) else rotation, dtype=np.float64)
-    if rot.shape != (3, 3) or not np.isfinite(rot).all():
-        raise ValueError(f"rotation must be a finite (3, 3) matrix, got shape {rot.shape}")
-    if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-5) or np.linalg.det(rot) < 0:
-        raise ValueError("rotation must be a proper rotation matrix (R R^T = I, det R = 1)")
-    if not (isinstance(resolution, (int, np.integer)) and resolution > 0):
-        raise ValueError(f"resolution must be a positive integer, got {resolution!r}")
-    if focal is not None and not focal > 0:
-        raise ValueError(f"focal must be a positive focal length in pixels or None, got {focal}")
-    if not scale > 0:
-        raise ValueError(f"scale must be positive, got {scale}")
-    if distance is None:
-        distance = 3.0 if focal is None else camera_distance(resolution, focal, scale)
-    if not distance > 0:
-        raise ValueError(f"distance must be positive, got {distance}")
-
+    rot, distance = _check_view(rotation, resolution, focal, distance, scale)
     uv = pixel_grid(resolution, resolution, dtype=torch.float64).flatten(1).T.numpy()  # (R*R, 2)
     n_pix = uv.shape[0]
     if focal is None:

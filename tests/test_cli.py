@@ -416,3 +416,88 @@ class TestBatch:
         assert [r.status for r in deeper.items] == ["ok"]
         redone = cli.run_batch(compose_batch([f"input_dir={photos}", f"out={out}", "skip_done=false"]))
         assert [r.status for r in redone.items] == ["ok"]
+
+
+class TestNovelViewRenderer:
+    @staticmethod
+    def no_context():
+        from sfs_torch.preview import GLContext
+
+        return GLContext(False, "egl", None, "no OpenGL context on egl: EGLError: no display")
+
+    def test_bad_renderer_is_one_clear_line(self, tmp_path):
+        result = run_cli([*TINY, "novel_view.renderer=vulkan", "out=x"], tmp_path)
+        assert result.returncode == 2
+        assert "novel_view.renderer must be one of auto, pyrender, embree, got 'vulkan'" in result.stderr + result.stdout
+        assert "Traceback" not in result.stderr
+        assert not (tmp_path / "x" / "normals.npy").exists()
+
+    @pytest.mark.parametrize("batch", [False, True], ids=["single", "batch"])
+    def test_pyrender_without_a_context_is_checked_before_any_work(self, tmp_path, monkeypatch, batch):
+        import sfs_torch.cli as cli
+
+        def never(*args, **kwargs):
+            raise AssertionError("work started before novel_view.renderer was checked")
+
+        monkeypatch.setattr(cli, "gl_context", self.no_context)
+        monkeypatch.setattr(cli, "_demo_inputs", never)
+        monkeypatch.setattr(cli, "estimate", never)
+        extra = [f"input_dir={write_item(tmp_path / 'photos' / 'a').parent}"] if batch else []
+        cfg = compose_batch([*extra, "integrate=l2", "novel_view.renderer=pyrender", f"out={tmp_path / 'r'}"])
+        with pytest.raises(ValueError, match="novel_view.renderer=pyrender needs an offscreen OpenGL context, but no "
+                                             "OpenGL context on egl: EGLError: no display; use novel_view.renderer=auto"):
+            (cli.run_batch if batch else cli.run)(cfg)
+        assert not (tmp_path / "r").exists()
+
+    def test_auto_falls_back_and_says_so(self, monkeypatch, caplog):
+        import logging
+
+        import sfs_torch.cli as cli
+
+        monkeypatch.setattr(cli, "gl_context", self.no_context)
+        cfg = compose_batch(["integrate=l2", "out=x"])
+        with caplog.at_level(logging.INFO, logger="sfs_torch"):
+            view = cli._novel_view(cfg, cli._pipeline_config(cfg))
+        assert view.choice.name == "embree" and view.choice.requested == "auto"
+        assert "novel view renderer: embree: the Embree ray caster; pyrender unavailable (no OpenGL context" in caplog.text
+
+    def test_no_context_is_made_without_a_novel_view(self, monkeypatch):
+        import sfs_torch.cli as cli
+
+        monkeypatch.setattr(cli, "gl_context", lambda: pytest.fail("no novel view is drawn: no context needed"))
+        cfg = compose_batch(["novel_view.renderer=pyrender", "out=x"])
+        assert cli._novel_view(cfg, cli._pipeline_config(cfg)).choice is None
+
+    @pytest.mark.parametrize("override, match", [
+        ("novel_view.resolution=0", "novel_view.resolution must be a positive integer"),
+        ("novel_view.azimuth_deg=inf", "must be finite"),
+    ])
+    def test_bad_viewpoint(self, override, match):
+        import sfs_torch.cli as cli
+
+        cfg = compose_batch([override, "integrate=l2", "novel_view.renderer=embree", "out=x"])
+        with pytest.raises(ValueError, match=match):
+            cli._novel_view(cfg, cli._pipeline_config(cfg))
+
+    def test_the_choice_and_viewpoint_reach_the_novel_view(self, tmp_path, monkeypatch):
+        from types import SimpleNamespace
+
+        import sfs_torch.cli as cli
+
+        calls = []
+
+        def record(mesh, lighting, **kwargs):
+            calls.append(kwargs)
+            return torch.zeros(3, kwargs["resolution"], kwargs["resolution"])
+
+        monkeypatch.setattr(cli, "render_novel_view", record)
+        cfg = compose_batch(["integrate=l2", "novel_view.renderer=embree", "novel_view.azimuth_deg=-50",
+                             "novel_view.resolution=40", "out=x"])
+        pipeline_cfg = cli._pipeline_config(cfg)
+        normals, mask = sphere(24, 9.0)
+        depth = 9.0 * normals[2:]  # the sphere's height, in pixels
+        est = SimpleNamespace(normals=normals, mask=mask, depth=depth, lighting=natural_lightings(0.7)["uffizi_gallery"],
+                              confidence=torch.ones(1, 24, 24))
+        cli._write_outputs(tmp_path, est, pipeline_cfg.camera, (), cli._novel_view(cfg, pipeline_cfg))
+        assert calls == [dict(azimuth_deg=-50.0, elevation_deg=20.0, resolution=40, renderer="embree")]
+        assert io.read_image(tmp_path / "novel_view.png").shape == (3, 40, 40)

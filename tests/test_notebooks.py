@@ -19,7 +19,18 @@ def test_notebook_runs(path, tmp_path):
     assert images, "the notebook should draw its figures"
 
 
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+def test_notebook_is_stored_without_outputs(path):
+    # docs/notebooks.md: stored without outputs (small diffs, no stale figures); the tests run them
+    notebook = nbformat.read(path, as_version=4)
+    code = [cell for cell in notebook.cells if cell.cell_type == "code"]
+    assert code, "a notebook without code cells"
+    assert [i for i, cell in enumerate(code) if cell.get("outputs")] == [], "cells with stored outputs"
+    assert [i for i, cell in enumerate(code) if cell.get("execution_count") is not None] == [], "stored execution counts"
+
+
 def test_every_notebook_is_listed_in_the_docs():
     listed = (ROOT / "docs" / "notebooks.md").read_text(encoding="utf-8")
-    assert {"quickstart", "reflectance_map", "integrability", "torch_modules"} <= {p.stem for p in NOTEBOOKS}
+    assert {"quickstart", "estimate", "reflectance_map", "integrability", "torch_modules", "features",
+            "geometry_db"} <= {p.stem for p in NOTEBOOKS}
     assert [p.name for p in NOTEBOOKS if f"`{p.name}`" not in listed] == []
