@@ -301,7 +301,15 @@ METHODS: Dict[str, _Method] = {
     "known_lighting_rgb_tex": _Method(True, True, _estimator(known=True, forest_only=True,
                                                              features=FeatureConfig(True, False, True)),
                                       "known lighting, forest only, RGB + texton (Table 1a: +Tex)"),
-    # Table 1b: integrability refinements of the unknown-lighting estimate
+    # Table 1b (the paper's setting): integrability refinements of the forest alone in known lighting
+    "known_lighting_l2": _Method(True, True, _estimator(known=True, integrate="l2", forest_only=True),
+                                 "known lighting, forest only + L2 integrability (Table 1b: l2)"),
+    "known_lighting_l1": _Method(True, True, _estimator(known=True, integrate="l1", forest_only=True),
+                                 "known lighting, forest only + L1 integrability (Table 1b: l1)"),
+    "known_lighting_conv": _Method(True, True, _estimator(known=True, integrate="conv", forest_only=True),
+                                   "known lighting, forest only + convex combination of leaf samples "
+                                   "(Table 1b: l2, conv.)"),
+    # integrability refinements of the unknown-lighting estimate
     "estimated_lighting_l2": _Method(False, True, _estimator(known=False, integrate="l2"),
                                      "estimated lighting + L2 integrability (Table 1b)"),
     "estimated_lighting_l1": _Method(False, True, _estimator(known=False, integrate="l1"),

@@ -261,6 +261,9 @@ class TestMethods:
         ("known_lighting_rgb", (True, False, False), "never", None, True),
         ("known_lighting_rgb_silh", (True, True, False), "never", None, True),
         ("known_lighting_rgb_tex", (True, False, True), "never", None, True),
+        ("known_lighting_l2", (True, True, True), "never", "l2", True),
+        ("known_lighting_l1", (True, True, True), "never", "l1", True),
+        ("known_lighting_conv", (True, True, True), "never", "conv", True),
         ("estimated_lighting", (True, True, True), "known", None, False),
         ("estimated_lighting_conv", (True, True, True), "known", "conv", False),
     ])
