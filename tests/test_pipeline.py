@@ -414,13 +414,14 @@ class TestSaturatedImage:
     """docs/robustness.md: half of the object's pixels saturated at 1 (the lighting scaled up
     until its median pixel clips), default settings against ``refine_rounds=0``.
 
-    The cases take the method's paths: the silhouette prior kept (the sphere: 0.82 deg either
-    way; blobby/9360 under Grace: 5.44 either way), the refit round kept (blobby/4046 under
-    Uffizi: median 5.64 vs 5.70 deg, mean 6.10 vs 6.85), and the refit round dropped by the
-    guard (a tilted capsule under Eucalyptus Grove: 15.99 vs 16.88, mean 16.76 vs 17.02), where
-    the default used to return the unconstrained silhouette estimate, shading 9 % of its peak
-    negative.
+    The cases take the method's paths: the silhouette prior kept (the sphere; blobby/9360 under
+    Grace), the refit round kept (blobby/4046 under Uffizi), and the refit round dropped by the
+    guard (a tilted capsule under Eucalyptus Grove), where the default used to return the
+    unconstrained silhouette estimate, shading 9 % of its peak negative. Errors are averaged
+    over three forest seeds: with one, blobby/4046's median moved by 0.5 deg from seed to seed.
     """
+
+    SEEDS = (0, 1, 2)
 
     @staticmethod
     def saturated(normals, mask, sh):
@@ -459,11 +460,16 @@ class TestSaturatedImage:
         assert 0.45 < saturated < 0.55
         errors = {}
         for label, extra in (("default", {}), ("no refit", {"reflectance_map": {"refine_rounds": 0}})):
-            est = sfs_torch.estimate(image, mask, config=dict(TINY, **extra), progress=False)
-            metrics = normal_metrics(est.normals[None], normals[None], mask[None])
-            errors[label] = (float(metrics.median[0]), float(metrics.mean[0]))
-            rendered = render_sphere(est.lighting, 64)
-            # exactly >= 0 on the 400 directions the fits are constrained on, rings <= 1 % between
-            assert float(rendered.min()) >= -0.01 * float(rendered.max()), label
+            scores = []
+            # over three forest seeds: one tiny forest's luck on one 64 px image moves the median by ~0.5 deg
+            for seed in self.SEEDS:
+                config = dict(TINY, **extra, training={**TINY.get("training", {}), "seed": seed})
+                est = sfs_torch.estimate(image, mask, config=config, progress=False)
+                metrics = normal_metrics(est.normals[None], normals[None], mask[None])
+                scores.append((float(metrics.median[0]), float(metrics.mean[0])))
+                rendered = render_sphere(est.lighting, 64)
+                # exactly >= 0 on the 400 directions the fits are constrained on, rings <= 1 % between
+                assert float(rendered.min()) >= -0.01 * float(rendered.max()), label
+            errors[label] = tuple(sum(column) / len(self.SEEDS) for column in zip(*scores))
         (median, mean), (median_r0, mean_r0) = errors["default"], errors["no refit"]
         assert median <= median_r0 + 0.3 and mean <= mean_r0 + 0.1, errors
