@@ -1,24 +1,37 @@
-"""Benchmark: VMFForest vs scikit-learn's RandomForestRegressor on synthetic SfS-like data.
+"""Benchmark: VMFForest vs scikit-learn's RandomForestRegressor, both tables in one run.
 
-Data: random visible normals shaded by a coloured 9-term SH lighting (plus noise), with
-silhouette-like features (a noisy relative contour distance and contour direction) and
-texton-like features (noisy random filters of the shading of the normal's neighbourhood):
-23 features, as in the method. Train and test rows are drawn independently.
+1. The project's own training sets: the geometry database (``DatabaseConfig()``) shaded
+   by natural lightings (``sfs_torch.lighting.natural_lightings()``), features as the
+   pipeline computes them (``pipeline.training_set(..., noise_sigma=0.001, seed=0)``,
+   23 features). Test rows are the database rows of held-out shapes (every 5th shape),
+   so the forests train on ~120k of the ~150k rows.
+2. A generic synthetic regression of unit vectors (``unit_regression``): normals that
+   are a smooth non-linear function of half the features, the other half noise; a sweep
+   over depth 12/15/18 x 20/30/40 features.
 
 Both forests get the same trees / depth / max_features / min_samples_leaf / row share
-(sklearn draws its 90% with replacement, ours without). sklearn's 3-output mean is
-normalised to a unit normal. Timings are taken with 1 and 2 threads; the machine is
-shared with other jobs, so wall times are noisy and 2-thread numbers suffer most.
+(``ForestConfig`` defaults; sklearn draws its rows with replacement, ours without) and
+all cores (``torch.set_num_threads(cores)``, ``n_jobs=cores``). sklearn's 3-output mean
+is normalised to a unit normal. Times are wall and CPU (process) seconds, each the best
+of ``--repeat`` fits, ours and sklearn's alternating; the machine may be shared, so the
+load average is printed with the tables.
 
-    python benchmarks/forest.py            # full: 150k train rows, sweep + sklearn
-    python benchmarks/forest.py --quick    # 30k rows, one configuration
+    python benchmarks/forest.py            # both tables (~12 min on 2 busy cores)
+    python benchmarks/forest.py --quick    # 30k training rows, one lighting, depth 12/18 x 20/40 features (~1 min)
+    # the fit of another forest.py (e.g. the previous commit's) side by side with this one:
+    git show HEAD:sfs_torch/forest.py > /tmp/forest_old.py
+    python benchmarks/forest.py --quick --baseline /tmp/forest_old.py
+    python benchmarks/forest.py --defaults-sweep   # our hyper-parameters around the defaults
 """
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import math
 import os
+import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -29,9 +42,55 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import torch  # noqa: E402
 
-from sfs_torch.forest import ForestConfig, VMFForest
+from sfs_torch.forest import ForestConfig, VMFForest  # noqa: E402
+
+DEFAULTS = {k: v for k, v in vars(ForestConfig()).items() if k != "_target_"}
+RESULTS = Path(__file__).parent / "results" / "forest.json"
+
+
+# ------------------------------------------------------------------------------ data
+def project_sets(n_lightings: int, max_train: int | None) -> list[dict]:
+    """The pipeline's training sets for the first ``n_lightings`` natural lightings, split by shape."""
+    from sfs_torch.geometry_db import DatabaseConfig, load_database
+    from sfs_torch.lighting import natural_lightings
+    from sfs_torch.pipeline import FeatureConfig, training_set
+    from sfs_torch.texton import TextonConfig
+
+    db = load_database(DatabaseConfig(), progress=False)
+    test = db.shape_id % 5 == 0
+    sets = []
+    for name, sh in list(natural_lightings().items())[:n_lightings]:
+        data = training_set(db, sh, FeatureConfig(), TextonConfig(), 0.001, 0)
+        X, n = data.features, data.normals
+        train = (~test).nonzero().squeeze(1)
+        if max_train is not None and len(train) > max_train:
+            train = train[torch.randperm(len(train), generator=torch.Generator().manual_seed(0))[:max_train].sort().values]
+        sets.append({"name": name, "train": (X[train], n[train]), "test": (X[test], n[test]), "all": (X, n)})
+    return sets
+
+
+def unit_regression(n: int, n_features: int, seed: int, noise: float = 0.05):
+    """``(X (n, F), normals (n, 3))``: unit vectors, a smooth function of the first F/2 features.
+
+    ``normals = normalise(sin(X[:, :F/2] A) + (0, 0, 1.5) + noise)`` with ``X`` uniform in
+    ``[0, 1]`` and a fixed random ``A`` per feature count (shared by train and test sets),
+    scaled so that every informative feature matters about equally; the other half of
+    the features is pure noise the forests must learn to ignore.
+    """
+    g = torch.Generator().manual_seed(seed)
+    X = torch.rand(n, n_features, generator=g)
+    k = n_features // 2
+    A = torch.randn(k, 3, generator=torch.Generator().manual_seed(1000 + n_features)) * (4.0 / math.sqrt(k))
+    z = torch.sin(X[:, :k] @ A) + torch.tensor([0.0, 0.0, 1.5]) + noise * torch.randn(n, 3, generator=g)
+    return X, torch.nn.functional.normalize(z, dim=1)
+
 
 SH_CONST = (0.282095, 0.488603, 0.488603, 0.488603, 1.092548, 1.092548, 0.315392, 1.092548, 0.546274)
+LIGHT = torch.tensor(
+    [[0.80, 0.10, 0.35, 0.25, 0.05, 0.10, -0.05, 0.08, 0.02],
+     [0.75, 0.25, 0.30, -0.05, -0.04, 0.06, -0.03, 0.02, 0.05],
+     [0.70, 0.15, 0.30, -0.20, 0.03, -0.02, -0.06, -0.05, 0.01]]
+)
 
 
 def sh_basis(n: torch.Tensor) -> torch.Tensor:
@@ -43,17 +102,14 @@ def sh_basis(n: torch.Tensor) -> torch.Tensor:
     )
 
 
-LIGHT = torch.tensor(
-    [[0.80, 0.10, 0.35, 0.25, 0.05, 0.10, -0.05, 0.08, 0.02],
-     [0.75, 0.25, 0.30, -0.05, -0.04, 0.06, -0.03, 0.02, 0.05],
-     [0.70, 0.15, 0.30, -0.20, 0.03, -0.02, -0.06, -0.05, 0.01]]
-)
+def sfs_like(n: int, seed: int, noise: float = 0.01):
+    """SfS-like synthetic rows (features (n, 23), normals (n, 3)), for ``--defaults-sweep``.
 
-
-def make_data(n: int, seed: int, noise: float = 0.01):
-    """(features (n, 23), normals (n, 3)) for the fixed lighting ``LIGHT``."""
+    Random visible normals shaded by a coloured SH lighting plus noise; silhouette-like
+    features (a noisy relative contour distance and contour direction) and texton-like
+    ones (noisy random filters of the shading of the normal's neighbourhood).
+    """
     g = torch.Generator().manual_seed(seed)
-    # normals of a sphere seen orthographically: uniform in the image disk
     r = torch.rand(n, generator=g).sqrt() * 0.999
     phi = torch.rand(n, generator=g) * 2 * math.pi
     normals = torch.stack([r * phi.cos(), r * phi.sin(), (1 - r * r).sqrt()], 1)
@@ -62,23 +118,21 @@ def make_data(n: int, seed: int, noise: float = 0.01):
         return (sh_basis(nrm) @ LIGHT.T + noise * torch.randn(n, 3, generator=g)).clamp(0, 1)
 
     colour = shade(normals)
-    # silhouette-like: relative distance and contour direction, corrupted because real
-    # shapes are not spheres
     d_rel = (1 - r + 0.15 * torch.randn(n, generator=g)).clamp(0, 1)
     beta = phi + 0.4 * torch.randn(n, generator=g)
     silhouette = torch.stack([d_rel, beta.cos(), beta.sin()], 1)
-    # texton-like: random filters of the shading of 4 neighbouring normals (local curvature)
     neighbours = []
     curvature = 0.3 * torch.randn(n, 1, generator=g)
     for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
         step = torch.tensor([dx, dy, 0.0]) * 0.15 * (1 + curvature)
         neighbours.append(shade(torch.nn.functional.normalize(normals + step, dim=1)))
-    patch = torch.cat([colour] + neighbours, 1)  # (n, 15)
+    patch = torch.cat([colour] + neighbours, 1)
     filters = torch.randn(15, 17, generator=torch.Generator().manual_seed(1234))
     texton = patch @ filters + 0.02 * torch.randn(n, 17, generator=g)
     return torch.cat([colour, silhouette, texton], 1), normals
 
 
+# --------------------------------------------------------------------------- fitting
 def median_angle(pred: torch.Tensor, truth: torch.Tensor) -> float:
     cos = (torch.nn.functional.normalize(pred, dim=1) * truth).sum(1).clamp(-1, 1)
     return float(torch.rad2deg(torch.acos(cos)).median())
@@ -90,104 +144,163 @@ def timed(fn):
     return out, time.perf_counter() - wall, time.process_time() - cpu
 
 
-def run_ours(cfg: dict, data, threads: int) -> dict:
-    torch.set_num_threads(threads)
-    (X, n), (Xt, nt) = data
-    forest = VMFForest(**cfg)
-    _, fit_wall, fit_cpu = timed(lambda: forest.fit(X, n))
-    pred, pred_wall, pred_cpu = timed(lambda: forest.predict(Xt))
-    return {"model": "VMFForest", "threads": threads, **cfg, "fit_s": fit_wall, "fit_cpu_s": fit_cpu,
-            "predict_s": pred_wall, "predict_cpu_s": pred_cpu, "median_deg": median_angle(pred.mean, nt),
+def fit_ours(cfg: dict, train, test, forest_cls=VMFForest) -> dict:
+    forest = forest_cls(**cfg)
+    _, wall, cpu = timed(lambda: forest.fit(*train))
+    return {"fit_s": wall, "fit_cpu_s": cpu, "median_deg": median_angle(forest.predict(test[0]).mean, test[1]),
             "nodes": forest.child_.numel()}
 
 
-def run_sklearn(cfg: dict, data, threads: int) -> dict:
+def fit_sklearn(cfg: dict, train, test, threads: int) -> dict:
     from sklearn.ensemble import RandomForestRegressor
 
-    (X, n), (Xt, nt) = data
     rf = RandomForestRegressor(
         n_estimators=cfg["n_trees"], max_depth=cfg["max_depth"], min_samples_leaf=cfg["min_samples_leaf"],
         max_features=cfg["max_features"], max_samples=cfg["sample_fraction"], n_jobs=threads, random_state=0,
     )
-    Xn, nn_, Xtn = X.numpy(), n.numpy(), Xt.numpy()
-    _, fit_wall, fit_cpu = timed(lambda: rf.fit(Xn, nn_))
-    pred, pred_wall, pred_cpu = timed(lambda: rf.predict(Xtn))
-    return {"model": "sklearn RF", "threads": threads, **cfg, "fit_s": fit_wall, "fit_cpu_s": fit_cpu,
-            "predict_s": pred_wall, "predict_cpu_s": pred_cpu,
-            "median_deg": median_angle(torch.from_numpy(pred).float(), nt),
+    X, n = train[0].numpy(), train[1].numpy()
+    _, wall, cpu = timed(lambda: rf.fit(X, n))
+    pred = torch.from_numpy(rf.predict(test[0].numpy())).float()
+    return {"fit_s": wall, "fit_cpu_s": cpu, "median_deg": median_angle(pred, test[1]),
             "nodes": sum(e.tree_.node_count for e in rf.estimators_)}
 
 
+def best_of(runs: list[dict]) -> dict:
+    best = dict(runs[0])
+    best["fit_s"] = min(r["fit_s"] for r in runs)
+    best["fit_cpu_s"] = min(r["fit_cpu_s"] for r in runs)
+    return best
+
+
+def compare(cfg: dict, train, test, threads: int, repeat: int) -> dict:
+    ours, theirs = [], []
+    for r in range(repeat):  # alternate the order, so that neither always runs second
+        for which in (("ours", "sklearn") if r % 2 == 0 else ("sklearn", "ours")):
+            if which == "ours":
+                ours.append(fit_ours(cfg, train, test))
+            else:
+                theirs.append(fit_sklearn(cfg, train, test, threads))
+    o, s = best_of(ours), best_of(theirs)
+    return {"ours": o, "sklearn": s, "speedup": s["fit_s"] / o["fit_s"], "cpu_speedup": s["fit_cpu_s"] / o["fit_cpu_s"]}
+
+
+def load_baseline(path: str):
+    # imported as a module of the package, so that its relative imports resolve
+    spec = importlib.util.spec_from_file_location("sfs_torch._baseline_forest", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module.VMFForest
+
+
+def baseline_ratio(baseline_cls, cfg: dict, train, repeat: int) -> dict:
+    times = {"baseline": [], "this": []}
+    for r in range(repeat):
+        for which in (("baseline", "this") if r % 2 == 0 else ("this", "baseline")):
+            forest = (baseline_cls if which == "baseline" else VMFForest)(**cfg)
+            _, wall, cpu = timed(lambda: forest.fit(*train))
+            times[which].append((wall, cpu))
+    out = {k: {"fit_s": min(w for w, _ in v), "fit_cpu_s": min(c for _, c in v),
+               "fit_s_median": statistics.median(w for w, _ in v)} for k, v in times.items()}
+    out["speedup"] = out["baseline"]["fit_s"] / out["this"]["fit_s"]
+    out["cpu_speedup"] = out["baseline"]["fit_cpu_s"] / out["this"]["fit_cpu_s"]
+    return out
+
+
+# ------------------------------------------------------------------------------ main
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="30k rows, one configuration (< 1 min)")
-    parser.add_argument("--train", type=int, default=None, help="training rows (default 150k, quick 30k)")
+    parser.add_argument("--quick", action="store_true", help="30k training rows, one lighting, sweep corners")
+    parser.add_argument("--threads", type=int, default=os.cpu_count(), help="torch threads and sklearn n_jobs")
+    parser.add_argument("--repeat", type=int, default=2, help="fits per model and setting (the best is kept)")
+    parser.add_argument("--baseline", help="another forest.py whose fit to time side by side with this one")
+    parser.add_argument("--defaults-sweep", action="store_true", help="only sweep our hyper-parameters around the defaults")
     args = parser.parse_args()
-    n_train = args.train or (30_000 if args.quick else 150_000)
-    data = (make_data(n_train, seed=0), make_data(100_000, seed=1))
-    base = {k: v for k, v in vars(ForestConfig()).items() if k != "_target_"}
+    torch.set_num_threads(args.threads)
+    repeat = args.repeat
+    if args.defaults_sweep:
+        return defaults_sweep(args.threads)
 
-    # Warm-up at full size: the first large fit of a process pays ~0.7 s of page faults
-    # for fresh allocations (measured: 3.3 s first vs 2.6 s later for the same forest).
-    VMFForest(**base).fit(*data[0]).predict(data[1][0])
-    rows = []
-    if args.quick:
-        rows.append(run_ours(base, data, threads=1))
-        rows.append(run_sklearn(base, data, threads=1))
-    else:
-        sweep = [
-            {},
-            {"n_trees": 4}, {"n_trees": 16},
-            {"max_depth": 10}, {"max_depth": 12}, {"max_depth": 16},
-            {"max_features": 4}, {"max_features": 12},
-            {"n_bins": 32}, {"n_bins": 128},
-            {"min_samples_leaf": 5}, {"min_samples_leaf": 20},
-        ]
-        for change in sweep:
-            rows.append(run_ours({**base, **change}, data, threads=1))
-            print(_format(rows[-1]), flush=True)
-        for threads in (1, 2):
-            if threads == 2:
-                rows.append(run_ours(base, data, threads=2))
-            rows.append(run_sklearn(base, data, threads=threads))
-        rows.append(run_sklearn({**base, "min_samples_leaf": 5}, data, threads=1))
+    n_train = 30_000 if args.quick else 150_000
+    result = {"threads": args.threads, "repeat": repeat, "torch": torch.__version__, "config": DEFAULTS}
+    sets = project_sets(1 if args.quick else 2, 30_000 if args.quick else None)
+    # Warm-up at full size: the first large fit of a process pays for page faults of
+    # fresh allocations.
+    VMFForest(**DEFAULTS).fit(*sets[0]["train"])
 
+    if args.baseline:
+        baseline_cls = load_baseline(args.baseline)
+        data = sets[0]["all"]  # all ~150k rows: the size the pipeline trains on
+        baseline_cls(**DEFAULTS).fit(*data)
+        reps = max(repeat, 3)
+        result["baseline"] = {"file": args.baseline, "rows": len(data[0]), "lighting": sets[0]["name"],
+                              **baseline_ratio(baseline_cls, DEFAULTS, data, reps)}
+        b = result["baseline"]
+        print(f"baseline {args.baseline} vs this forest.py, default ForestConfig on {sets[0]['name']} "
+              f"({b['rows']} rows x 23), {args.threads} threads, best of {reps}: fit {b['baseline']['fit_s']:.2f} s -> "
+              f"{b['this']['fit_s']:.2f} s ({b['speedup']:.2f}x; CPU {b['baseline']['fit_cpu_s']:.2f} -> "
+              f"{b['this']['fit_cpu_s']:.2f} s, {b['cpu_speedup']:.2f}x)", flush=True)
+
+    project = []
+    for s in sets:
+        row = {"lighting": s["name"], "train_rows": len(s["train"][0]), "test_rows": len(s["test"][0]),
+               **compare(DEFAULTS, s["train"], s["test"], args.threads, repeat)}
+        project.append(row)
+        print(_line(row["lighting"], row), flush=True)
+    result["project"] = project
+
+    depths, widths = ((12, 18), (20, 40)) if args.quick else ((12, 15, 18), (20, 30, 40))
+    sweep = []
+    for n_features in widths:
+        train, test = unit_regression(n_train, n_features, seed=0), unit_regression(50_000, n_features, seed=1)
+        for depth in depths:
+            row = {"max_depth": depth, "features": n_features, "train_rows": n_train, "test_rows": 50_000,
+                   **compare({**DEFAULTS, "max_depth": depth}, train, test, args.threads, repeat)}
+            sweep.append(row)
+            print(_line(f"depth {depth}, {n_features} features", row), flush=True)
+    result["synthetic"] = sweep
+    result["loadavg"] = os.getloadavg()
+
+    print(f"\n{args.threads} threads / n_jobs, best of {repeat}; load average {os.getloadavg()[0]:.1f} on "
+          f"{os.cpu_count()} cores; defaults {DEFAULTS}\n")
+    print("| lighting | train rows | VMFForest fit s (CPU s) | sklearn fit s (CPU s) | speed-up (CPU) | median error ours / sklearn |")
+    print("|---|---|---|---|---|---|")
+    for r in project:
+        print(_row(f"{r['lighting']} | {r['train_rows']}", r))
     print()
-    print(f"train rows {n_train}, test rows 100000, 23 features; load average {os.getloadavg()[0]:.1f} "
-          f"on {os.cpu_count()} cores (shared machine)")
-    print(_header())
-    for row in rows:
-        print(_format(row))
-    ratios = []
-    for s in (r for r in rows if r["model"] == "sklearn RF"):
-        ours = [r for r in rows if r["model"] == "VMFForest" and r["threads"] == s["threads"]
-                and all(r[k] == s[k] for k in base)]
-        if ours:
-            o = ours[-1]
-            ratios.append({"threads": s["threads"], **{k: s[k] for k in ("max_depth", "min_samples_leaf")},
-                           "train_speedup": s["fit_s"] / o["fit_s"], "train_cpu_speedup": s["fit_cpu_s"] / o["fit_cpu_s"],
-                           "predict_speedup": s["predict_s"] / o["predict_s"],
-                           "median_deg_ours": o["median_deg"], "median_deg_sklearn": s["median_deg"]})
-    for r in ratios:
-        print(f"threads {r['threads']} depth {r['max_depth']} leaf {r['min_samples_leaf']}: train {r['train_speedup']:.2f}x faster "
-              f"(cpu time {r['train_cpu_speedup']:.2f}x), predict {r['predict_speedup']:.2f}x, "
-              f"median error {r['median_deg_ours']:.2f} vs {r['median_deg_sklearn']:.2f} deg")
-    out = Path(__file__).parent / "results"
-    out.mkdir(parents=True, exist_ok=True)
-    result = {"train_rows": n_train, "test_rows": 100_000, "features": 23, "loadavg": os.getloadavg(),
-              "torch": torch.__version__, "rows": rows, "ratios": ratios}
-    (out / "forest.json").write_text(json.dumps(result, indent=2))
+    print("| depth | features | VMFForest fit s (CPU s) | sklearn fit s (CPU s) | speed-up (CPU) | median error ours / sklearn |")
+    print("|---|---|---|---|---|---|")
+    for r in sweep:
+        print(_row(f"{r['max_depth']} | {r['features']}", r))
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(json.dumps(result, indent=2))
 
 
-def _header() -> str:
-    return (f"{'model':<11} {'thr':>3} {'T':>3} {'depth':>5} {'m':>3} {'bins':>4} {'leaf':>4} "
-            f"{'fit s':>7} {'fit cpu':>7} {'pred s':>7} {'median deg':>10} {'nodes':>8}")
+def _line(name: str, r: dict) -> str:
+    o, s = r["ours"], r["sklearn"]
+    return (f"{name}: ours {o['fit_s']:.2f} s (cpu {o['fit_cpu_s']:.2f}) {o['median_deg']:.2f} deg {o['nodes']} nodes | "
+            f"sklearn {s['fit_s']:.2f} s (cpu {s['fit_cpu_s']:.2f}) {s['median_deg']:.2f} deg {s['nodes']} nodes | "
+            f"{r['speedup']:.2f}x (cpu {r['cpu_speedup']:.2f}x)")
 
 
-def _format(r: dict) -> str:
-    return (f"{r['model']:<11} {r['threads']:>3} {r['n_trees']:>3} {r['max_depth']:>5} {r['max_features']:>3} "
-            f"{r['n_bins']:>4} {r['min_samples_leaf']:>4} {r['fit_s']:>7.2f} {r['fit_cpu_s']:>7.2f} "
-            f"{r['predict_s']:>7.3f} {r['median_deg']:>10.2f} {r['nodes']:>8}")
+def _row(head: str, r: dict) -> str:
+    o, s = r["ours"], r["sklearn"]
+    return (f"| {head} | {o['fit_s']:.2f} ({o['fit_cpu_s']:.2f}) | {s['fit_s']:.2f} ({s['fit_cpu_s']:.2f}) | "
+            f"{r['speedup']:.1f}x ({r['cpu_speedup']:.1f}x) | {o['median_deg']:.2f} / {s['median_deg']:.2f} deg |")
+
+
+def defaults_sweep(threads: int) -> None:
+    """Our forest alone around the defaults (SfS-like synthetic data, 150k / 100k rows)."""
+    train, test = sfs_like(150_000, seed=0), sfs_like(100_000, seed=1)
+    VMFForest(**DEFAULTS).fit(*train)
+    sweep = [{}, {"n_trees": 4}, {"n_trees": 16}, {"max_depth": 10}, {"max_depth": 12}, {"max_depth": 16},
+             {"max_features": 4}, {"max_features": 12}, {"n_bins": 32}, {"n_bins": 128},
+             {"min_samples_leaf": 5}, {"min_samples_leaf": 20}]
+    print(f"{threads} threads; load average {os.getloadavg()[0]:.1f}")
+    for change in sweep:
+        r = fit_ours({**DEFAULTS, **change}, train, test)
+        print(f"{str(change or 'defaults'):<24} fit {r['fit_s']:.2f} s (cpu {r['fit_cpu_s']:.2f})  "
+              f"median {r['median_deg']:.2f} deg  {r['nodes']} nodes", flush=True)
 
 
 if __name__ == "__main__":

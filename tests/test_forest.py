@@ -5,12 +5,17 @@ import pytest
 import torch
 from scipy import stats
 
+from sfs_torch import forest as forest_module
 from sfs_torch.forest import (
     MAX_KAPPA,
     VMF,
     ForestConfig,
     NotFittedError,
     VMFForest,
+    _bin,
+    _compact,
+    _draw_features,
+    _mix32,
     _quantile_edges,
     sample_vmf,
     vmf_entropy,
@@ -212,6 +217,140 @@ class TestSplitSearch:
         forest = VMFForest(n_trees=2, max_depth=5, min_samples_leaf=2, max_features=3).fit(X, normals)
         assert forest.child_.numel() == 2 and forest.depth_ == 0
         assert forest.kappa_.tolist() == [MAX_KAPPA, MAX_KAPPA]
+
+
+class TestBinning:
+    @pytest.mark.parametrize("n_bins", [2, 3, 8, 64, 256])
+    def test_matches_counting_edges(self, n_bins, dtype):
+        # integer-valued data: many values sit exactly on an edge and many edges repeat
+        g = torch.Generator().manual_seed(n_bins)
+        X = (4 * torch.randn(3000, 5, generator=g, dtype=torch.float64)).round().to(dtype)
+        X[:, 4] = 1.0  # a constant feature: all its edges are equal
+        edges = _quantile_edges(X, n_bins, torch.Generator().manual_seed(0))
+        expected = (X.T[:, :, None] > edges[:, None, :]).sum(2).to(torch.uint8)  # edges strictly below
+        got = _bin(X, edges)
+        assert got.dtype == torch.uint8 and got.shape == (5, 3000)
+        assert torch.equal(got, expected)
+        assert int(got[4].max()) == 0 and int(got.max()) <= n_bins - 1
+
+    def test_extremes(self):
+        X = torch.tensor([[-1e30], [0.0], [0.5], [1.0], [1e30]])
+        edges = torch.tensor([[0.0, 0.5, 1.0]])
+        assert _bin(X, edges)[0].tolist() == [0, 0, 1, 2, 3]
+
+
+class TestFeatureDraws:
+    def test_mix32_matches_full_product(self):
+        # the split 16-bit product must equal the exact 32-bit hash (Python ints do not overflow)
+        def reference(x):
+            x ^= x >> 16
+            x = (x * 0x7FEB352D) % 2**32
+            x ^= x >> 15
+            x = (x * 0x846CA68B) % 2**32
+            return x ^ (x >> 16)
+
+        g = torch.Generator().manual_seed(0)
+        values = torch.cat([torch.tensor([0, 1, 2**31, 2**32 - 1]), torch.randint(0, 2**32, (1000,), generator=g)])
+        got = _mix32(values)
+        assert got.tolist() == [reference(int(v)) for v in values]
+        assert int(got.min()) >= 0 and int(got.max()) < 2**32
+        assert _mix32(12345) == reference(12345)
+
+    def test_golden(self):
+        # pinned: the same seed must draw the same features on every device and version
+        assert _draw_features(0, torch.tensor([0, 1, 2, 7, 123456789]), 5, 3).tolist() == [
+            [0, 3, 4], [3, 0, 2], [1, 0, 4], [2, 1, 3], [1, 3, 4]
+        ]
+        assert _draw_features(2**40 + 3, torch.tensor([0, 1, 2]), 23, 4).tolist() == [
+            [15, 8, 2, 22], [6, 22, 17, 3], [20, 3, 10, 5]
+        ]
+
+    def test_distinct_and_seeded(self):
+        nodes = torch.arange(5000)
+        a = _draw_features(3, nodes, 23, 8)
+        assert a.shape == (5000, 8) and a.dtype == torch.int64
+        assert (a.sort(1).values.diff(dim=1) > 0).all() and int(a.min()) >= 0 and int(a.max()) < 23
+        assert torch.equal(a, _draw_features(3, nodes, 23, 8))
+        assert (a != _draw_features(4, nodes, 23, 8)).any(1).float().mean() > 0.9
+        assert (a != _draw_features(3 + 2**32, nodes, 23, 8)).any(1).float().mean() > 0.9  # all seed bits count
+        assert torch.equal(_draw_features(3, nodes, 23, 23).sort(1).values, torch.arange(23).expand(5000, 23))
+
+    def test_uniform_and_independent(self):
+        f = _draw_features(0, torch.arange(100_000), 23, 8)
+        for counts in (torch.bincount(f.reshape(-1), minlength=23), torch.bincount(f[:, 0], minlength=23)):
+            assert stats.chisquare(counts.double().numpy()).pvalue > 1e-3
+        # siblings and parent/child have consecutive ids: their first features are independent
+        joint = torch.bincount(f[:-1, 0] * 23 + f[1:, 0], minlength=23 * 23)
+        assert stats.chisquare(joint.double().numpy()).pvalue > 1e-3
+
+    def test_device(self, device):
+        nodes = torch.arange(1000, device=device) * 7
+        got = _draw_features(11, nodes, 23, 8)
+        assert got.device.type == device.type
+        assert torch.equal(got.cpu(), _draw_features(11, nodes.cpu(), 23, 8))
+
+
+class TestGrowInternals:
+    def test_compact(self):
+        mask = torch.rand(1000, generator=torch.Generator().manual_seed(0)) > 0.7
+        assert torch.equal(_compact(mask, int(mask.sum())), mask.nonzero().squeeze(1))
+        assert _compact(torch.zeros(5, dtype=torch.bool), 0).numel() == 0
+
+    def test_int64_indices_give_the_same_forest(self, monkeypatch):
+        X, normals = _smooth_data(6_000, noise=0.1, seed=4)
+        kw = dict(n_trees=3, max_depth=9, min_samples_leaf=4, max_features=3, n_bins=32)
+        small = VMFForest(**kw).fit(X, normals)
+        monkeypatch.setattr(forest_module, "_INT32_LIMIT", 1)  # every index tensor int64
+        wide = VMFForest(**kw).fit(X, normals)
+        for name in ("feature_", "threshold_", "child_", "mean_", "kappa_"):
+            assert torch.equal(getattr(small, name), getattr(wide, name))
+
+    def test_node_chunks_give_the_same_forest(self, monkeypatch):
+        # the split search runs over chunks of nodes sized to the cache; any chunking
+        # (here down to one node per chunk) must find the same splits
+        X, normals = _smooth_data(6_000, noise=0.1, seed=6)
+        kw = dict(n_trees=3, max_depth=9, min_samples_leaf=4, max_features=3, n_bins=32)
+        whole = VMFForest(**kw).fit(X, normals)
+        for cells in (1, 2 * 3 * 32 * 5):  # 1 node, 5 nodes per chunk
+            monkeypatch.setattr(forest_module, "_CHUNK_CELLS", cells)
+            chunked = VMFForest(**kw).fit(X, normals)
+            for name in ("feature_", "threshold_", "child_", "mean_", "kappa_"):
+                assert torch.equal(getattr(whole, name), getattr(chunked, name))
+
+    def test_node_statistics_match_routing(self):
+        # every node's vMF must be that of the training rows routed to it: checks the
+        # per-level partition of the (tree, row) pairs at every node, not only the leaves
+        X, normals = _smooth_data(5_000, noise=0.2, seed=5, dtype=torch.float64)
+        forest = VMFForest(n_trees=3, max_depth=8, min_samples_leaf=5, max_features=3, sample_fraction=1.0).fit(X, normals)
+        n_nodes = forest.child_.numel()
+        total = torch.zeros(n_nodes, 3, dtype=torch.float64)
+        count = torch.zeros(n_nodes, dtype=torch.float64)
+        node = torch.arange(3).repeat(len(X))  # (row, tree) flat
+        rows = torch.arange(len(X)).repeat_interleave(3)
+        moving = torch.ones_like(node, dtype=torch.bool)
+        for _ in range(forest.depth_ + 1):
+            total.index_add_(0, node[moving], normals[rows[moving]])
+            count.index_add_(0, node[moving], torch.ones(int(moving.sum()), dtype=torch.float64))
+            nxt = forest.child_[node] + (X[rows, forest.feature_[node]] > forest.threshold_[node])
+            moving &= nxt != node
+            node = nxt
+        assert int(count[:3].sum()) == 3 * len(X) and int(count.min()) >= 5
+        fit = vmf_fit(total, count)
+        torch.testing.assert_close(fit.mean, forest.mean_, rtol=0, atol=1e-9)
+        torch.testing.assert_close(fit.kappa, forest.kappa_, rtol=1e-9, atol=1e-9)
+
+    def test_threads_do_not_change_the_forest(self):
+        X, normals = _smooth_data(20_000, noise=0.1, seed=0)
+        threads = torch.get_num_threads()
+        try:
+            torch.set_num_threads(1)
+            a = VMFForest(n_trees=3, max_depth=10).fit(X, normals)
+            torch.set_num_threads(2)
+            b = VMFForest(n_trees=3, max_depth=10).fit(X, normals)
+        finally:
+            torch.set_num_threads(threads)
+        for name in ("feature_", "threshold_", "child_", "mean_", "kappa_"):
+            assert torch.equal(getattr(a, name), getattr(b, name))
 
 
 class TestVMFForest:
