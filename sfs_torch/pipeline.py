@@ -550,7 +550,7 @@ def _nearest_valid_lighting(sh: Tensor) -> Tensor:
     to is then constrained too.
     """
     directions = hemisphere_directions(VALIDITY_DIRECTIONS, device=sh.device, dtype=torch.float64)
-    shading = _hemisphere_shading(sh.double())  # (B, M, 3)
+    shading = _hemisphere_shading(sh.double(), directions)  # (B, M, 3)
     valid = (shading >= 0).flatten(1).all(1)
     if bool(valid.all()):
         return sh
@@ -558,9 +558,11 @@ def _nearest_valid_lighting(sh: Tensor) -> Tensor:
     return torch.where(valid[:, None, None], sh, nearest.to(sh.dtype))
 
 
-def _hemisphere_shading(sh: Tensor) -> Tensor:
-    """What lightings ``(B, 3, 9)`` render on the visible hemisphere: ``(B, M, 3)``."""
-    directions = hemisphere_directions(VALIDITY_DIRECTIONS, device=sh.device, dtype=sh.dtype)
+def _hemisphere_shading(sh: Tensor, directions: Optional[Tensor] = None) -> Tensor:
+    """What lightings ``(B, 3, 9)`` render on the visible hemisphere (``directions``, default
+    the ``VALIDITY_DIRECTIONS`` ones): ``(B, M, 3)``."""
+    if directions is None:
+        directions = hemisphere_directions(VALIDITY_DIRECTIONS, device=sh.device, dtype=sh.dtype)
     return sh_basis_vectors(directions) @ sh.transpose(1, 2)
 
 
