@@ -14,28 +14,45 @@ Stages, each timed for a batch of ``--batch`` 128x128 masks / images and for one
 Masks are unions of random ellipses. The machine is shared with other jobs: wall times
 are noisy; each entry is the best of ``--repeat`` runs.
 
-    python benchmarks/features.py            # 1000 x 128^2 and one 1024^2
-    python benchmarks/features.py --quick    # 50 x 128^2 and one 256^2
+Training set (issue 13): ``sfs_torch.pipeline.training_set`` on the default geometry
+database (150000 5 x 5 patches: shading, jitter, noise, clamp, textons), once with the
+library's ``render_sh`` / ``texton_features`` and once with the reference formulation
+they replaced (the 9-term basis ``einsum`` and kornia's ``rgb_to_lab`` of
+``linear_rgb_to_rgb``, i.e. an sRGB round trip), called alternately, ``--train-repeat``
+times each; medians, their ratio and the largest feature difference.
+
+    python benchmarks/features.py            # 1000 x 128^2, one 1024^2, training set
+    python benchmarks/features.py --quick    # 50 x 128^2, one 256^2, training set
+    python benchmarks/features.py --training-set-only
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import statistics
 import time
 from pathlib import Path
+from unittest import mock
 
 # Idle OpenMP threads spin by default, which stalls every parallel op on a shared machine.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+import torch.nn.functional as F  # noqa: E402
+from kornia.color import linear_rgb_to_rgb, rgb_to_lab  # noqa: E402
 from scipy import ndimage  # noqa: E402
 from skimage.color import rgb2lab  # noqa: E402
 from skimage.morphology import medial_axis as sk_medial_axis  # noqa: E402
 
+from sfs_torch import pipeline  # noqa: E402
+from sfs_torch._checks import check_finite  # noqa: E402
+from sfs_torch.datasets import evaluation_lightings  # noqa: E402
+from sfs_torch.geometry_db import DatabaseConfig, load_database  # noqa: E402
+from sfs_torch.lighting import sh_basis  # noqa: E402
 from sfs_torch.silhouette import euclidean_distance_transform, medial_axis, silhouette_features  # noqa: E402
-from sfs_torch.texton import texton_features  # noqa: E402
+from sfs_torch.texton import TextonConfig, texton_features, texton_filter_bank  # noqa: E402
 
 
 def random_masks(n: int, size: int, seed: int) -> np.ndarray:
@@ -77,6 +94,53 @@ def reference_textons(image: np.ndarray) -> np.ndarray:
     return np.stack(out)
 
 
+def reference_render_sh(normals: torch.Tensor, sh: torch.Tensor) -> torch.Tensor:
+    """The 9-term basis sum: (B, 3, H, W) normals, (B, 3, 9) lighting -> (B, 3, H, W)."""
+    return torch.einsum("bck,bkhw->bchw", sh.to(normals.dtype), sh_basis(normals))
+
+
+def reference_texton_features(image, mask=None, *, kernel_size=5, padding="same"):
+    """kornia's sRGB round trip to Lab, then the bank: (B, 3, H, W) -> (B, 17, H', W').
+
+    With the library's input checks (finite image, boolean mask), as the replaced code had.
+    """
+    check_finite(image, "image")
+    if mask is not None:
+        image = torch.where(mask.bool(), image, torch.zeros((), dtype=image.dtype))
+    lab = rgb_to_lab(linear_rgb_to_rgb(image))
+    weights = texton_filter_bank(kernel_size, device=image.device, dtype=image.dtype)
+    return F.conv2d(lab, weights, padding=kernel_size // 2 if padding == "same" else 0)
+
+
+def run_training_set(repeat: int) -> list:
+    """pipeline.training_set with the library's functions vs the reference ones, alternately."""
+    db = load_database(DatabaseConfig())
+    sh = evaluation_lightings(1)[0][1]
+    args = (db, sh, pipeline.FeatureConfig(), TextonConfig(), 0.001, 0, 0.3, 0.05)
+
+    def ours():
+        return pipeline.training_set(*args)
+
+    def reference():
+        with mock.patch.object(pipeline, "render_sh", reference_render_sh), \
+                mock.patch.object(pipeline, "texton_features", reference_texton_features):
+            return pipeline.training_set(*args)
+
+    diff = float((ours().features - reference().features).abs().max())
+    times = {"torch": [], "reference": []}
+    for _ in range(repeat):
+        for name, fn in (("reference", reference), ("torch", ours)):
+            start = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - start)
+    t_ours, t_ref = statistics.median(times["torch"]), statistics.median(times["reference"])
+    name = f"{db.normals.shape[0]}x{db.normals.shape[-1]}^2"
+    note = f"median of {repeat}, alternating; max |diff| features {diff:.1e}"
+    print(f"{name:>14} {'training_set':>20} {t_ours:10.3f} {t_ref:10.3f} {t_ref / t_ours:8.2f}  {note}", flush=True)
+    return [dict(workload=name, stage="training_set", torch_s=t_ours, reference_s=t_ref, speedup=t_ref / t_ours,
+                 note=note, torch_times=times["torch"], reference_times=times["reference"], max_abs_diff=diff)]
+
+
 def best_time(fn, repeat: int) -> float:
     times = []
     for _ in range(repeat):
@@ -115,21 +179,38 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=None, help="side of the single large mask (default 1024, quick 256)")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (scipy is single-threaded)")
     parser.add_argument("--repeat", type=int, default=None, help="best of this many runs (default 2, quick 1)")
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "features.json")
+    parser.add_argument("--train-repeat", type=int, default=5, help="training_set runs of each implementation")
+    parser.add_argument("--training-set-only", action="store_true", help="only the training_set comparison")
+    parser.add_argument("--threads-training-set", type=int, default=None,
+                        help="torch threads for the training_set comparison (default: torch's own)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="JSON (default results/features.json, or features_training_set.json)")
     args = parser.parse_args()
     batch = args.batch or (50 if args.quick else 1000)
     size = args.size or (256 if args.quick else 1024)
     repeat = args.repeat or (1 if args.quick else 2)
-    torch.set_num_threads(args.threads)
+    default_threads = torch.get_num_threads()
+    rows = []
+    if not args.training_set_only:
+        torch.set_num_threads(args.threads)
+        print(f"torch {torch.__version__}, {args.threads} thread(s); times in seconds, best of {repeat}")
+        print(f"{'workload':>14} {'stage':>20} {'torch':>10} {'scipy/sk':>10} {'speedup':>8}")
+        rows += run_workload(f"{batch}x128^2", random_masks(batch, 128, 0), repeat, 1)
+        rows += run_workload(f"1x{size}^2", random_masks(1, size, 2), repeat, 3)
+    train_threads = args.threads_training_set or default_threads
+    torch.set_num_threads(train_threads)
+    print(f"training set: torch {torch.__version__}, {train_threads} thread(s); seconds, median of {args.train_repeat}")
+    print(f"{'workload':>14} {'stage':>20} {'torch':>10} {'reference':>10} {'speedup':>8}")
+    rows += run_training_set(args.train_repeat)
 
-    print(f"torch {torch.__version__}, {args.threads} thread(s); times in seconds, best of {repeat}")
-    print(f"{'workload':>14} {'stage':>20} {'torch':>10} {'scipy/sk':>10} {'speedup':>8}")
-    rows = run_workload(f"{batch}x128^2", random_masks(batch, 128, 0), repeat, 1)
-    rows += run_workload(f"1x{size}^2", random_masks(1, size, 2), repeat, 3)
-
+    if args.out is None:
+        name = "features_training_set.json" if args.training_set_only else "features.json"
+        args.out = Path(__file__).parent / "results" / name
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    meta = dict(torch=torch.__version__, threads=args.threads, repeat=repeat, batch=batch, size=size,
-                cpu_count=os.cpu_count(), note="shared machine: wall times are noisy")
+    meta = dict(torch=torch.__version__, threads=None if args.training_set_only else args.threads,
+                repeat=repeat, batch=batch, size=size,
+                training_set_threads=train_threads, train_repeat=args.train_repeat,
+                load_average=os.getloadavg(), cpu_count=os.cpu_count(), note="shared machine: wall times are noisy")
     args.out.write_text(json.dumps(dict(meta=meta, results=rows), indent=2))
     print(f"wrote {args.out}")
 

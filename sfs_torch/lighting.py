@@ -17,7 +17,7 @@ import json
 from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
-from typing import Dict, Optional
+from typing import Dict, Optional, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -90,18 +90,66 @@ def sh_basis(normals: Tensor) -> Tensor:
     return sh_basis_vectors(normals.movedim(1, -1)).movedim(-1, 1)
 
 
+def _sh_polynomial(sh: Tensor) -> Tuple[Tensor, Tensor]:
+    """SH coefficients as a quadratic polynomial in the normal.
+
+    Args:
+        sh: :math:`(*, 3, 9)` coefficients.
+
+    Returns:
+        ``(coefficients, constant)``: :math:`(*, 3, 9)` weights of the monomials
+        ``x, y, z, x^2, y^2, z^2, xy, yz, zx`` (the order of :func:`_sh_monomials`) and
+        the :math:`(*, 3)` constant term, so that
+        ``I_c(n) = constant[c] + sum_k coefficients[c, k] m_k(n)`` equals the SPEC basis
+        sum for any ``n`` (unit or not, zero included).
+    """
+    a = sh.unbind(-1)
+    coefficients = torch.stack(
+        [
+            _C1 * a[3], _C1 * a[1], _C1 * a[2],  # x, y, z
+            _C4 * a[8], -_C4 * a[8], 3 * _C3 * a[6],  # x^2, y^2, z^2
+            _C2 * a[4], _C2 * a[5], _C2 * a[7],  # xy, yz, zx
+        ],
+        -1,
+    )
+    return coefficients, _C0 * a[0] - _C3 * a[6]
+
+
+def _sh_monomials(n: Tensor) -> Tensor:
+    """The 9 monomials ``x, y, z, x^2, y^2, z^2, xy, yz, zx`` of flattened normals.
+
+    Args:
+        n: :math:`(B, 3, P)` normals.
+
+    Returns:
+        :math:`(B, 9, P)`, contiguous.
+    """
+    return torch.cat([n, n * n, n[:, 0:2] * n[:, 1:3], n[:, 2:3] * n[:, 0:1]], 1)
+
+
+# Large batches are shaded in blocks of about this many normal values: on CPU a fresh
+# temporary of the size of the whole batch costs about as much as the arithmetic on it
+# (first-touch page faults), while block-sized temporaries stay in cache and are reused.
+_BLOCK_VALUES = 1 << 18
+
+
 def render_sh(normals: Tensor, sh: Tensor) -> Tensor:
     """Shade a normal map with SH lighting.
 
     Pixels whose normal is zero (outside the object) receive the lighting's constant
     terms; multiply by the mask where a black background is wanted.
 
+    The 9-term basis sum is evaluated as the equal quadratic polynomial in ``n`` (9
+    monomials and a constant, a batched matrix product, over blocks of the batch); it
+    equals ``einsum("bck,bkhw->bchw", sh, sh_basis(normals))`` up to rounding.
+
     Args:
         normals: camera-frame unit normals, :math:`(B, 3, H, W)`.
         sh: SH coefficients, :math:`(B, 3, 9)` (or :math:`(3, 9)`, shared by the batch).
 
     Returns:
-        linear RGB, :math:`(B, 3, H, W)`, unclipped.
+        linear RGB, :math:`(B, 3, H, W)`, unclipped, contiguous, dtype and device of
+        ``normals``.
 
     Example:
         >>> n = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
@@ -110,12 +158,26 @@ def render_sh(normals: Tensor, sh: Tensor) -> Tensor:
         [1.0, 1.0, 1.0]
     """
     check_shape(normals, "normals", "B 3 H W")
+    batch, _, height, width = normals.shape
     if sh.ndim == 2:
-        sh = sh.expand(normals.shape[0], -1, -1)
+        sh = sh.expand(batch, -1, -1)
     check_shape(sh, "sh", "B 3 9")
-    if sh.shape[0] != normals.shape[0]:
-        raise ValueError(f"sh must have batch size {normals.shape[0]} like normals, got {tuple(sh.shape)}")
-    return torch.einsum("bck,bkhw->bchw", sh.to(normals.dtype), sh_basis(normals))
+    if sh.shape[0] != batch:
+        raise ValueError(f"sh must have batch size {batch} like normals, got {tuple(sh.shape)}")
+    # one lighting broadcast over the batch (stride 0): convert it once, not per element
+    shared = batch > 1 and sh.stride(0) == 0
+    coefficients, constant = _sh_polynomial((sh[:1] if shared else sh).to(normals.dtype))
+    if shared:
+        coefficients, constant = coefficients.expand(batch, -1, -1), constant.expand(batch, -1)
+    flat, constant = normals.reshape(batch, 3, height * width), constant.unsqueeze(-1)
+    step = max(1, _BLOCK_VALUES // max(1, 3 * height * width))
+    if batch <= step:
+        return torch.baddbmm(constant, coefficients, _sh_monomials(flat)).view(batch, 3, height, width)
+    out = flat.new_empty(flat.shape)
+    for start in range(0, batch, step):
+        part = slice(start, start + step)
+        out[part] = torch.baddbmm(constant[part], coefficients[part], _sh_monomials(flat[part]))
+    return out.view(batch, 3, height, width)
 
 
 def fit_sh_vectors(

@@ -27,7 +27,6 @@ from typing import Optional, Tuple
 
 import torch
 import torch.nn.functional as F
-from kornia.color import linear_rgb_to_rgb, rgb_to_lab
 from torch import Tensor, nn
 
 from ._checks import check_finite, check_mask, check_same_size, check_shape, from_batch, to_batch
@@ -135,21 +134,80 @@ def texton_filter_bank(
     return _filter_bank(kernel_size, torch.device("cpu") if device is None else torch.device(device), dtype)
 
 
+# kornia.color.rgb_to_xyz (linear sRGB primaries, D65) with the rows divided by kornia's
+# rgb_to_lab reference white (0.95047, 1, 1.08883): linear RGB -> X/Xn, Y/Yn, Z/Zn.
+_RGB_TO_XYZ = (
+    (0.412453, 0.357580, 0.180423),
+    (0.212671, 0.715160, 0.072169),
+    (0.019334, 0.119193, 0.950227),
+)
+_XYZ_WHITE = (0.95047, 1.0, 1.08883)
+_RGB_TO_XYZ_WHITE = tuple(tuple(k / w for k in row) for row, w in zip(_RGB_TO_XYZ, _XYZ_WHITE))
+# L*a*b* from g = f(t) - 4/29 (f of CIE / kornia below): L = 116 g_y, a = 500 (g_x - g_y),
+# b = 200 (g_y - g_z); the offsets -16 and 116 * 4/29 cancel, so black (g = 0) is Lab 0.
+_G_TO_LAB = ((0.0, 116.0, 0.0), (500.0, -500.0, 0.0), (0.0, 200.0, -200.0))
+_LAB_THRESHOLD = 0.008856  # kornia's (6/29)^3
+_LAB_SLOPE = 7.787  # kornia's (29/6)^2 / 3
+# Large batches are converted and filtered in blocks of about this many image values: on
+# CPU a fresh temporary of the size of the whole batch costs about as much as the
+# arithmetic on it (first-touch page faults), while block-sized temporaries stay in
+# cache and are reused.
+_BLOCK_VALUES = 1 << 18
+
+
+def _mix_channels(image: Tensor, rows: Tuple[Tuple[float, ...], ...]) -> Tensor:
+    """``out[:, i] = sum_j rows[i][j] * image[:, j]``: a 3 x 3 colour matrix on (B, 3, H, W).
+
+    Three broadcast multiply-adds into one output (differentiable; the in-place adds
+    keep nothing autograd needs), cheaper on CPU than ``einsum``, which copies.
+    """
+    m = torch.tensor(rows, dtype=image.dtype, device=image.device).view(3, 3, 1, 1)
+    out = image[:, 0:1] * m[:, 0]
+    out.addcmul_(image[:, 1:2], m[:, 1])
+    return out.addcmul_(image[:, 2:3], m[:, 2])
+
+
+def _lab_g(image: Tensor) -> Tensor:
+    """Linear RGB (B, 3, H, W) -> ``f(X/Xn, Y/Yn, Z/Zn) - 4/29`` (B, 3, H, W), 0 at black.
+
+    ``f(t) = t^(1/3)`` above ``(6/29)^3`` and ``7.787 t + 4/29`` below, kornia's
+    constants; the cube-root branch is clamped so that its gradient stays finite.
+    """
+    t = _mix_channels(image, _RGB_TO_XYZ_WHITE)
+    cube_root = t.clamp(min=_LAB_THRESHOLD).pow(1.0 / 3.0).sub_(4.0 / 29.0)
+    return torch.where(t > _LAB_THRESHOLD, cube_root, t * _LAB_SLOPE)
+
+
+def _lab(image: Tensor) -> Tensor:
+    """Linear RGB (B, 3, H, W) -> L*a*b* (B, 3, H, W), unchecked."""
+    return _mix_channels(_lab_g(image), _G_TO_LAB)
+
+
 def linear_rgb_to_lab(image: Tensor) -> Tensor:
     r"""CIE L*a*b* (D65, 2 degree observer) of a LINEAR RGB image.
 
-    kornia's ``rgb_to_lab`` expects sRGB-encoded input, so the linear values are
-    encoded first; the result matches ``skimage.color.rgb2lab`` of the sRGB encoding.
+    Computed directly, linear RGB -> XYZ -> L*a*b*, with kornia's matrix, white point and
+    thresholds: it equals ``kornia.color.rgb_to_lab(kornia.color.linear_rgb_to_rgb(x))``
+    (kornia's ``rgb_to_lab`` expects sRGB-encoded input and linearises it again) to
+    float rounding, without the two ``pow`` calls of that round trip, and it matches
+    ``skimage.color.rgb2lab`` of the sRGB encoding. Differentiable; the gradient is
+    finite everywhere (black included).
 
     Args:
         image: :math:`(B, 3, H, W)` (or :math:`(3, H, W)`) linear RGB, nominally [0, 1].
 
     Returns:
-        :math:`(B, 3, H, W)` L in [0, 100], a and b roughly in [-128, 127].
+        :math:`(B, 3, H, W)` L in [0, 100], a and b roughly in [-128, 127]; dtype and
+        device of ``image``. Black is exactly ``(0, 0, 0)``.
+
+    Example:
+        >>> black_white = torch.tensor([0.0, 1.0]).view(1, 1, 2).expand(3, 1, 2)
+        >>> linear_rgb_to_lab(black_white)[0].flatten().tolist()  # L
+        [0.0, 100.0]
     """
     batch, single = to_batch(image, "image", 3)
     check_shape(batch, "image", "B 3 H W")
-    return from_batch(rgb_to_lab(linear_rgb_to_rgb(batch)), single)
+    return from_batch(_lab(batch), single)
 
 
 def texton_features(
@@ -160,6 +218,10 @@ def texton_features(
     Pixels outside ``mask`` are set to black before the Lab conversion, and the image
     border is zero-padded (black). ``padding="valid"`` on ``kernel_size`` patches gives
     exactly the ``"same"`` response at the patch centres. Differentiable in ``image``.
+
+    Equals ``conv2d(linear_rgb_to_lab(masked image), texton_filter_bank(k))``; large
+    batches are processed in blocks (of about ``2**18`` values), ``kernel_size`` patches
+    with ``padding="valid"`` as one matrix product.
 
     Args:
         image: :math:`(B, 3, H, W)` (or :math:`(3, H, W)`) linear RGB.
@@ -174,19 +236,39 @@ def texton_features(
     _check_padding(padding)
     batch, single = to_batch(image, "image", 3)
     check_shape(batch, "image", "B 3 H W")
-    check_finite(batch, "image")
+    # a finite sum means finite values (NaN and inf propagate): the full count only then
+    if not bool(torch.isfinite(batch.sum())):
+        check_finite(batch, "image")
     if padding == "valid" and min(batch.shape[-2:]) < kernel_size:
         raise ValueError(
             f"image of size {tuple(batch.shape[-2:])} is smaller than kernel_size {kernel_size} for padding='valid'"
         )
     weights = texton_filter_bank(kernel_size, device=batch.device, dtype=batch.dtype)
+    mask_b = None
     if mask is not None:
         # any coverage is valid here: a training patch may lie wholly inside the object
         mask_b = check_mask(to_batch(mask, "mask", 1)[0], allow_full=True, allow_empty=True)
         check_same_size(batch, "image", mask_b, "mask")
-        batch = torch.where(mask_b, batch, torch.zeros((), dtype=batch.dtype, device=batch.device))
-    lab = rgb_to_lab(linear_rgb_to_rgb(batch))
-    out = F.conv2d(lab, weights, padding=kernel_size // 2 if padding == "same" else 0)
+    n, (height, width) = batch.shape[0], batch.shape[-2:]
+    if padding == "valid":
+        height, width = height - kernel_size + 1, width - kernel_size + 1
+
+    def responses(part: slice) -> Tensor:
+        block = batch[part]
+        if mask_b is not None:
+            block = torch.where(mask_b[part], block, torch.zeros((), dtype=block.dtype, device=block.device))
+        lab = _lab(block)
+        if height == width == 1 and padding == "valid":  # a patch of the kernel's size: one matrix product
+            return F.linear(lab.flatten(1), weights.flatten(1)).view(-1, N_TEXTON_FILTERS, 1, 1)
+        return F.conv2d(lab, weights, padding=kernel_size // 2 if padding == "same" else 0)
+
+    # large batches (the training patches) in blocks: see _BLOCK_VALUES
+    step = max(1, _BLOCK_VALUES // max(1, batch[0:1].numel()))
+    if n <= step:
+        return from_batch(responses(slice(None)), single)
+    out = batch.new_empty(n, N_TEXTON_FILTERS, height, width)
+    for start in range(0, n, step):
+        out[start : start + step] = responses(slice(start, start + step))
     return from_batch(out, single)
 
 

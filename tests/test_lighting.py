@@ -3,6 +3,7 @@ import math
 import pytest
 import torch
 
+from sfs_torch import lighting
 from sfs_torch.lighting import (
     SHFit,
     SHRenderer,
@@ -67,6 +68,33 @@ class TestRenderSH:
         sh[0, :, 0] = torch.tensor([0.2, 0.5, 0.9]) / 0.282095
         out = render_sh(random_normals(1, 4, 4, dtype).to(device), sh)
         assert torch.allclose(out[0, :, 0, 0], torch.tensor([0.2, 0.5, 0.9], dtype=dtype, device=device), atol=1e-6)
+
+    def test_equals_basis_sum(self, device, dtype):
+        """The polynomial form == the 9-term basis sum (unit, zero and non-unit normals)."""
+        n = random_normals(3, 5, 4, dtype).to(device)
+        n[0, :, 0, :3] = 0.0  # background
+        n[1] *= 1.7  # not unit: the polynomial must not assume |n| = 1
+        sh = random_sh(3, dtype).to(device)
+        tol = dict(atol=2e-6, rtol=1e-6) if dtype == torch.float32 else dict(atol=1e-12, rtol=0)
+        ref = torch.einsum("bck,bkhw->bchw", sh, sh_basis(n))
+        torch.testing.assert_close(render_sh(n, sh), ref, **tol)
+        torch.testing.assert_close(render_sh(n, sh[0]), torch.einsum("ck,bkhw->bchw", sh[0], sh_basis(n)), **tol)
+        zero = render_sh(torch.zeros(1, 3, 1, 1, dtype=dtype, device=device), sh[:1])[0, :, 0, 0]
+        torch.testing.assert_close(zero, 0.282095 * sh[0, :, 0] - 0.315392 * sh[0, :, 6], **tol)
+
+    def test_blocks(self, monkeypatch):
+        """A batch larger than one block gives what one pass gives, values and gradients."""
+        n = random_normals(7, 2, 3).requires_grad_()
+        sh = random_sh(7).requires_grad_()
+        whole, shared = render_sh(n, sh), render_sh(n, sh[0])
+        monkeypatch.setattr(lighting, "_BLOCK_VALUES", 2 * 18)  # blocks of 2, 2, 2, 1 maps
+        torch.testing.assert_close(render_sh(n, sh), whole, atol=1e-14, rtol=0)
+        torch.testing.assert_close(render_sh(n, sh[0]), shared, atol=1e-14, rtol=0)
+        assert torch.autograd.gradcheck(render_sh, (n, sh), fast_mode=True)
+        one = sh[0].detach().requires_grad_()  # shared lighting: the gradient sums over the batch
+        assert torch.autograd.gradcheck(render_sh, (n, one), fast_mode=True)
+        with torch.no_grad():
+            torch.testing.assert_close(render_sh(n, sh), whole, atol=1e-14, rtol=0)
 
     def test_shared_lighting_broadcasts(self):
         n = random_normals(3, 4, 4)

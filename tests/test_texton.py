@@ -2,9 +2,11 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from kornia.color import linear_rgb_to_rgb, rgb_to_lab
 from scipy import ndimage
 from skimage.color import rgb2lab
 
+from sfs_torch import texton
 from sfs_torch.texton import (
     N_TEXTON_FILTERS,
     TEXTON_FILTER_NAMES,
@@ -19,6 +21,17 @@ from sfs_torch.texton import (
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
     return np.where(linear > 0.0031308, 1.055 * np.power(np.clip(linear, 0.0031308, None), 1 / 2.4) - 0.055, 12.92 * linear)
+
+
+def special_values(dtype, device="cpu"):
+    """(1, 3, 1, N) linear RGB: 0, tiny, the sRGB and Lab thresholds, 1, out of range, grey
+    and mixed pairs of those, and random colours."""
+    v = [0.0, 1e-8, 1e-6, 1e-4, 0.0031308, 0.0031309, 0.008856, 0.0088565, 0.01, 0.2, 0.5, 1.0, -0.01, 1.2]
+    v = torch.tensor(v, dtype=torch.float64)
+    pairs = torch.stack(torch.meshgrid(v, v, indexing="ij")).flatten(1)[[0, 1, 1]]
+    g = torch.Generator().manual_seed(7)
+    x = torch.cat([v.expand(3, -1), pairs, torch.rand(3, 300, generator=g, dtype=torch.float64)], 1)
+    return x[None, :, None].to(device=device, dtype=dtype)
 
 
 def scipy_bank(lab: np.ndarray, radius: int) -> np.ndarray:
@@ -74,6 +87,31 @@ class TestLinearRgbToLab:
         np.testing.assert_allclose(got, ref, atol=1e-3 if dtype == torch.float32 else 1e-8)
         assert np.abs(got[0, :, 0, 0]).max() < 1e-4  # black is Lab 0: zero padding == black border
 
+    def test_equals_kornia_on_srgb(self, device, dtype):
+        """The direct linear RGB -> XYZ -> Lab equals kornia's rgb_to_lab of the sRGB encoding."""
+        x = special_values(dtype, device)
+        ref = rgb_to_lab(linear_rgb_to_rgb(x.double()))  # kornia, in float64
+        got = linear_rgb_to_lab(x)
+        assert got.dtype == dtype and got.device.type == device.type
+        # float32: a = 500 (f_x - f_y) turns rounding of f near the threshold into ~2e-4
+        tol = dict(atol=5e-4, rtol=1e-6) if dtype == torch.float32 else dict(atol=1e-10, rtol=0)
+        torch.testing.assert_close(got.double(), ref, **tol)
+        # and no worse than kornia's own round trip in the same dtype
+        own = (rgb_to_lab(linear_rgb_to_rgb(x)).double() - ref).abs().max()
+        assert float((got.double() - ref).abs().max()) <= 1.5 * float(own) + 1e-10
+        assert float(got[0, :, 0, 0].abs().max()) == 0.0  # black is exactly Lab 0
+
+    def test_gradient_equals_kornia(self):
+        g = torch.Generator().manual_seed(8)
+        x = (0.02 + 0.96 * torch.rand(1, 3, 4, 6, generator=g, dtype=torch.float64)).requires_grad_()
+        w = torch.randn(1, 3, 4, 6, generator=g, dtype=torch.float64)
+        ours = torch.autograd.grad((linear_rgb_to_lab(x) * w).sum(), x)[0]
+        ref = torch.autograd.grad((rgb_to_lab(linear_rgb_to_rgb(x)) * w).sum(), x)[0]
+        torch.testing.assert_close(ours, ref, atol=1e-10, rtol=1e-10)
+        # finite at black, tiny values and the thresholds too
+        x0 = special_values(torch.float64).requires_grad_()
+        assert bool(torch.isfinite(torch.autograd.grad(linear_rgb_to_lab(x0).sum(), x0)[0]).all())
+
     def test_unbatched_and_exception(self):
         x = torch.rand(3, 4, 5)
         torch.testing.assert_close(linear_rgb_to_lab(x), linear_rgb_to_lab(x[None])[0])
@@ -105,6 +143,29 @@ class TestTextonFeatures:
         got = texton_features(sel, padding="valid")
         assert got.shape == (len(rows), 17, 1, 1)
         torch.testing.assert_close(got[:, :, 0, 0], full[0][:, rows, cols].T, atol=1e-10, rtol=0)
+
+    def test_equals_bank_on_lab(self, device, dtype):
+        """The bank folded into the weights == the bank on linear_rgb_to_lab of the masked image."""
+        g = torch.Generator().manual_seed(9)
+        image = torch.rand(2, 3, 9, 11, generator=g, dtype=torch.float64).to(device=device, dtype=dtype)
+        image[0, :, 0, :14] = special_values(dtype, device)[0, :, 0, :11]
+        mask = (torch.rand(2, 1, 9, 11, generator=g) < 0.7).to(device)
+        lab = linear_rgb_to_lab(torch.where(mask, image, torch.zeros((), dtype=dtype, device=device)))
+        ref = F.conv2d(lab.double(), texton_filter_bank(dtype=torch.float64, device=device), padding=2)
+        tol = dict(atol=2e-4, rtol=1e-6) if dtype == torch.float32 else dict(atol=1e-10, rtol=0)
+        torch.testing.assert_close(texton_features(image, mask).double(), ref, **tol)
+
+    def test_blocks(self, monkeypatch):
+        """A batch larger than one block gives what one pass gives, values and gradients."""
+        g = torch.Generator().manual_seed(10)
+        image = (0.05 + 0.9 * torch.rand(7, 3, 5, 6, generator=g, dtype=torch.float64)).requires_grad_()
+        mask = torch.rand(7, 1, 5, 6, generator=g) < 0.8
+        whole_valid, whole_same = texton_features(image, mask, padding="valid"), texton_features(image, mask)
+        monkeypatch.setattr(texton, "_BLOCK_VALUES", 2 * 90)  # blocks of 2, 2, 2, 1 images
+        torch.testing.assert_close(texton_features(image, mask, padding="valid"), whole_valid, atol=1e-12, rtol=0)
+        torch.testing.assert_close(texton_features(image, mask), whole_same, atol=1e-12, rtol=0)
+        assert texton_features(image, mask, padding="valid").shape == (7, 17, 1, 2)
+        assert torch.autograd.gradcheck(lambda x: texton_features(x, mask, padding="valid"), (image,), fast_mode=True)
 
     def test_background_ignored(self):
         image = torch.rand(1, 3, 9, 9)
@@ -145,6 +206,15 @@ class TestTextonFeatures:
             texton_features(torch.rand(1, 3, 3, 3), padding="valid")
         with pytest.raises(ValueError, match="image"):
             texton_features(torch.full((1, 3, 5, 5), float("nan")))
+        big = torch.rand(4000, 3, 5, 5)  # more than one block
+        big[3999, 1, 2, 2] = float("inf")
+        with pytest.raises(ValueError, match="image contains 1 NaN or infinite"):
+            texton_features(big, padding="valid")
+
+    def test_huge_finite_values_pass_the_check(self):
+        # the sum overflows to inf; the exact check then finds no bad value
+        image = torch.full((1, 3, 5, 5), 3e38)
+        assert bool(torch.isfinite(texton_features(image, padding="valid")).all())
 
 
 class TestLinearRGBToLabModule:
