@@ -13,13 +13,21 @@ corrupted normals), integrated by:
 Depth RMSE is in pixels over the mask after removing the best offset per connected
 component (perspective: relative error in percent after the best scale).
 
-Run: ``python benchmarks/integration.py [--quick] [--sizes 256 512]``; writes
-``benchmarks/results/integration.json``.
+A second table times the L1 solver (15 IRLS rounds) on the 256x256 sphere two ways in
+the same run, alternating: with the coarse pseudo-inverse computed once per mask and
+rescaled in later rounds (the solver as it is), and recomputed in float64 on the CPU for
+every round (the solver before issue 13, rebuilt here by patching the module).
+
+Run: ``python benchmarks/integration.py [--quick] [--sizes 256 512] [--only coarse]``;
+writes ``benchmarks/results/integration.json`` (``--only coarse``:
+``benchmarks/results/integration_coarse.json``).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import statistics
 import time
 from pathlib import Path
 
@@ -30,6 +38,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 import torch
 
+from sfs_torch import integrability
 from sfs_torch.camera import pixel_grid
 from sfs_torch.integrability import integrate_convex, integrate_normals
 
@@ -258,23 +267,120 @@ def run(sizes, repeats):
     return rows
 
 
+# ----------------------------------------------------------------------------- coarse inverse
+
+
+@contextlib.contextmanager
+def per_round_cpu_pinv():
+    """The L1 solver as before issue 13: a float64 CPU pseudo-inverse in every IRLS round."""
+    init, devices = integrability._Multigrid.__init__, integrability._FLOAT64_DEVICES
+
+    def every_round(self, level, *args, coarse=None, **kwargs):
+        init(self, level, *args, **kwargs)
+
+    integrability._Multigrid.__init__, integrability._FLOAT64_DEVICES = every_round, ("cpu",)
+    try:
+        yield
+    finally:
+        integrability._Multigrid.__init__, integrability._FLOAT64_DEVICES = init, devices
+
+
+@contextlib.contextmanager
+def counting_pinv(stats):
+    pinv = torch.linalg.pinv
+
+    def counted(*args, **kwargs):
+        t = time.perf_counter()
+        out = pinv(*args, **kwargs)
+        stats["pinv_calls"] += 1
+        stats["pinv_seconds"] += time.perf_counter() - t
+        return out
+
+    torch.linalg.pinv = counted
+    try:
+        yield
+    finally:
+        torch.linalg.pinv = pinv
+
+
+def coarse_inverse(size, repeats, devices):
+    """L1 on the sphere: coarse inverse once per mask (now) vs every round on the CPU (before)."""
+    z, n, mask = surfaces(size)["sphere"]
+    rows = []
+    for device in devices:
+        for noise in ("clean", "outliers5%"):
+            nin = (n if noise == "clean" else corrupt(n, mask, 0.05, seed=size)).float()[None].to(device)
+            m = mask[None, None].to(device)
+            variants = {"once per mask": contextlib.nullcontext, "every round, CPU": per_round_cpu_pinv}
+            times = {k: [] for k in variants}
+            stats = {k: dict(pinv_calls=0, pinv_seconds=0.0) for k in variants}
+            depth = {}
+            for rep in range(repeats + 1):  # the first round is a warm-up; variants alternate
+                for name, variant in variants.items():
+                    with variant(), counting_pinv(stats[name]):
+                        if device.startswith("cuda"):
+                            torch.cuda.synchronize()
+                        t = time.perf_counter()
+                        out = integrate_normals(nin, m, method="l1").depth[0, 0]
+                        if device.startswith("cuda"):
+                            torch.cuda.synchronize()
+                        sec = time.perf_counter() - t
+                    if rep:
+                        times[name].append(sec)
+                    depth[name] = _np(out)
+            before = depth["every round, CPU"]
+            for name in variants:
+                calls = stats[name]["pinv_calls"] / (repeats + 1)
+                rows.append(dict(
+                    size=size, surface="sphere", input=noise, device=device, variant=name,
+                    best=min(times[name]), median=statistics.median(times[name]),
+                    pinv_calls=calls, pinv_seconds=stats[name]["pinv_seconds"] / (repeats + 1),
+                    rmse=rmse(depth[name], z.numpy(), mask.numpy()),
+                    max_diff_to_before=float(np.abs(depth[name] - before)[mask.numpy()].max()),
+                ))
+            rows[-2]["speedup_best"] = rows[-1]["best"] / rows[-2]["best"]
+            rows[-2]["speedup_median"] = rows[-1]["median"] / rows[-2]["median"]
+    return rows
+
+
+def print_coarse(rows, repeats):
+    print(f"\nL1 (15 IRLS rounds), coarse pseudo-inverse once per mask vs every round; "
+          f"{repeats} alternating repeats after a warm-up")
+    print(f"{'size':>5} {'input':<11} {'device':<6} {'variant':<17} {'pinv calls':>10} {'pinv s':>7} "
+          f"{'best s':>7} {'median s':>8} {'before/now':>15} {'rmse px':>8} {'max |d-before|':>14}")
+    for r in rows:
+        ratio = f"{r['speedup_best']:.2f}x / {r['speedup_median']:.2f}x" if "speedup_best" in r else ""
+        print(f"{r['size']:>5} {r['input']:<11} {r['device']:<6} {r['variant']:<17} {r['pinv_calls']:>10.0f} "
+              f"{r['pinv_seconds']:>7.4f} {r['best']:>7.3f} {r['median']:>8.3f} {ratio:>15} {r['rmse']:>8.4f} "
+              f"{r['max_diff_to_before']:>14.2e}")
+    print("before/now: ratio of the best times / of the medians; pinv s: seconds per call inside torch.linalg.pinv")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="one small size, no repeats")
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512])
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--only", choices=["coarse"], help="only the coarse pseudo-inverse table")
     args = parser.parse_args()
     sizes, repeats = ([128], 1) if args.quick else (args.sizes, args.repeats)
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    out = Path(__file__).parent / "results"
+    out.mkdir(parents=True, exist_ok=True)
+    meta = dict(torch=torch.__version__, threads=torch.get_num_threads(), repeats=repeats, sizes=sizes)
+    coarse = coarse_inverse(128 if args.quick else 256, max(repeats, 5), devices)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
+    print_coarse(coarse, max(repeats, 5))
+    if args.only == "coarse":
+        (out / "integration_coarse.json").write_text(json.dumps(dict(meta=meta, coarse_inverse=coarse), indent=1))
+        return
     rows = run(sizes, repeats)
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, best of {repeats} (after a warm-up)")
+    print(f"\nbest of {repeats} (after a warm-up)")
     print(f"{'size':>5} {'surface':<13} {'input':<13} {'method':<12} {'rmse':>10} {'seconds':>8}")
     for r in rows:
         unit = r.get("unit", "px")
         print(f"{r['size']:>5} {r['surface']:<13} {r['input']:<13} {r['method']:<12} {r['rmse']:>7.4f} {unit:<2} {r['seconds']:>8.3f}")
-    out = Path(__file__).parent / "results"
-    out.mkdir(parents=True, exist_ok=True)
-    meta = dict(torch=torch.__version__, threads=torch.get_num_threads(), repeats=repeats, sizes=sizes)
-    (out / "integration.json").write_text(json.dumps(dict(meta=meta, rows=rows), indent=1))
+    (out / "integration.json").write_text(json.dumps(dict(meta=meta, rows=rows, coarse_inverse=coarse), indent=1))
 
 
 if __name__ == "__main__":

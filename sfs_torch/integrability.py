@@ -181,19 +181,59 @@ def _prolong(e: Tensor, shape: torch.Size) -> Tensor:
     return e.repeat_interleave(2, -2).repeat_interleave(2, -1)[..., : shape[-2], : shape[-1]]
 
 
-class _Multigrid:
-    """Symmetric aggregation V-cycle used as the preconditioner of CG."""
+# devices whose linear algebra has float64; others (e.g. MPS) take the coarse level to the CPU
+_FLOAT64_DEVICES = ("cpu", "cuda")
 
-    def __init__(self, level: _Level, coarsest: int = 8, smooth: int = 1, omega: float = 0.7, boost: float = 1.6):
+
+class _CoarseInverse:
+    """Pseudo-inverse of one coarsest level, reusable for reweightings of the same mask.
+
+    Singular (one constant per connected component): the pseudo-inverse ignores that.
+    In float64: float32 eigh (LAPACK ssyevd) returned NaN eigenvectors for a real coarse
+    level with many empty rows (tests/data/coarse_level_eigh_nan.npz). On the level's
+    device where it has float64, else on the CPU.
+    """
+
+    def __init__(self, level: _Level):
+        a = level.dense().detach()
+        where = a.device if a.device.type in _FLOAT64_DEVICES else torch.device("cpu")
+        pinv = torch.linalg.pinv(a.to(where, torch.float64), hermitian=True, rtol=1e-4)
+        self.inv = pinv.to(a.device, a.dtype)
+        self.trace = _level_trace(level)
+
+    def scaled(self, level: _Level) -> Tensor:
+        """The inverse for ``level`` (same mask, other weights): times the ratio of the traces."""
+        trace = _level_trace(level)
+        ratio = self.trace / trace.clamp_min(torch.finfo(trace.dtype).tiny)
+        return self.inv * torch.where(trace > 0, ratio, 0.0)[:, None, None]
+
+
+def _level_trace(level: _Level) -> Tensor:
+    # trace of Dx^T Wx Dx + Dy^T Wy Dy: every edge weight counts at both of its pixels
+    return 2.0 * (level.wx.detach().flatten(1).sum(1) + level.wy.detach().flatten(1).sum(1))
+
+
+class _Multigrid:
+    """Symmetric aggregation V-cycle used as the preconditioner of CG.
+
+    ``coarse``: the coarsest level's inverse of an earlier problem on the same mask (the
+    IRLS rounds of the L1 solver), rescaled by the ratio of the levels' traces instead
+    of recomputed. Any positive semi-definite coarse solve with the level's nullspace
+    keeps the V-cycle a symmetric positive definite preconditioner, so CG still
+    converges to the same solution; only its iteration count can change.
+    """
+
+    def __init__(self, level: _Level, coarsest: int = 8, smooth: int = 1, omega: float = 0.7, boost: float = 1.6,
+                 coarse: Optional[_CoarseInverse] = None):
         self.levels: List[_Level] = [level]
         while max(self.levels[-1].wx.shape[-2:]) > coarsest:
             self.levels.append(self.levels[-1].coarsen())
-        a = self.levels[-1].dense()
-        # Singular (one constant per connected component): the pseudo-inverse ignores that.
-        # In float64 on the CPU: float32 eigh (LAPACK ssyevd) returned NaN eigenvectors
-        # for a real coarse level with many empty rows (tests/data/coarse_level_eigh_nan.npz).
-        pinv = torch.linalg.pinv(a.detach().cpu().double(), hermitian=True, rtol=1e-4)
-        self.coarse_inv = pinv.to(a.device, a.dtype)
+        if coarse is None:
+            self.coarse = _CoarseInverse(self.levels[-1])
+            self.coarse_inv = self.coarse.inv
+        else:
+            self.coarse = coarse
+            self.coarse_inv = coarse.scaled(self.levels[-1])
         self.smooth, self.omega, self.boost = smooth, omega, boost
 
     def __call__(self, r: Tensor) -> Tensor:
@@ -305,9 +345,10 @@ def _project(x: Tensor, labels: Tensor) -> Tensor:
 class _Problem:
     """Weighted least squares ``min_s |Wx^½(Dx s - tx)|² + |Wy^½(Dy s - ty)|²`` on one mask."""
 
-    def __init__(self, wx: Tensor, wy: Tensor, labels: Tensor, max_iter: int, tol: float):
+    def __init__(self, wx: Tensor, wy: Tensor, labels: Tensor, max_iter: int, tol: float,
+                 coarse: Optional[_CoarseInverse] = None):
         self.level = _Level(wx, wy)
-        self.precond = _Multigrid(self.level)
+        self.precond = _Multigrid(self.level, coarse=coarse)
         self.labels, self.max_iter, self.tol = labels, max_iter, tol
 
     def solve(self, b: Tensor, x0: Optional[Tensor] = None) -> Tensor:
@@ -465,7 +506,7 @@ def integrate_normals(
     tx, ty = _edge_targets(gu, gv, ex, ey)
     w = m.to(normals.dtype) if weights is None else weights[:, 0]
     wx, wy = _edge_weights(w, ex, ey)
-    s = None
+    s, coarse = None, None
     rounds = l1_iter if method == "l1" else 1
     for it in range(rounds):
         ax, ay = wx, wy
@@ -474,7 +515,9 @@ def integrate_normals(
             rx, ry = (_dx(s) - tx).detach(), (_dy(s) - ty).detach()
             ax = wx * torch.rsqrt(rx * rx + l1_delta**2) * l1_delta
             ay = wy * torch.rsqrt(ry * ry + l1_delta**2) * l1_delta
-        problem = _Problem(ax.detach(), ay.detach(), labels, max_iter, tol)
+        # the coarse pseudo-inverse once per mask: later rounds rescale the first one's
+        problem = _Problem(ax.detach(), ay.detach(), labels, max_iter, tol, coarse=coarse)
+        coarse = problem.precond.coarse
         last = it == rounds - 1
         x0 = None if s is None else s.detach()
         s = _Solve.apply(tx, ty, ax, ay, problem, x0) if last else problem.solve(

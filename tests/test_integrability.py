@@ -3,6 +3,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from sfs_torch.camera import pixel_grid
 from sfs_torch.integrability import (
@@ -10,6 +11,7 @@ from sfs_torch.integrability import (
     IntegrabilityConfig,
     Integrator,
     Surface,
+    _CoarseInverse,
     _Level,
     _Multigrid,
     depth_to_mesh,
@@ -224,6 +226,60 @@ class TestMultigrid:
         inv = _Multigrid(level).coarse_inv
         assert inv.dtype == torch.float32 and bool(torch.isfinite(inv).all())
         torch.testing.assert_close(a @ inv @ a, a, atol=1e-2, rtol=1e-3)
+
+    @staticmethod
+    def _outliers(size=48, fraction=0.05):
+        z, n, mask = _batch(*gaussian_bump(size))
+        g = torch.Generator().manual_seed(1)
+        bad = (torch.rand(size, size, generator=g, dtype=F64) < fraction) & mask[0, 0]
+        rnd = torch.randn(3, size, size, generator=g, dtype=F64)
+        rnd[2] = rnd[2].abs() + 0.2
+        return z, torch.where(bad, rnd / rnd.norm(dim=0), n[0])[None], mask
+
+    def test_l1_computes_the_coarse_inverse_once(self, monkeypatch):
+        _, noisy, mask = self._outliers()
+        calls = []
+        pinv = torch.linalg.pinv
+        monkeypatch.setattr(torch.linalg, "pinv", lambda a, **kw: calls.append(a.shape) or pinv(a, **kw))
+        integrate_normals(noisy, mask, method="l1", l1_iter=6)
+        assert len(calls) == 1
+
+    def test_l1_equals_per_round_inverse(self, monkeypatch):
+        # the solver before the coarse inverse was shared: every IRLS round recomputed it
+        z, noisy, mask = self._outliers()
+        shared = integrate_normals(noisy, mask, method="l1", tol=1e-12, max_iter=2000)
+        init = _Multigrid.__init__
+        monkeypatch.setattr(_Multigrid, "__init__", lambda self, level, coarse=None, **kw: init(self, level, **kw))
+        per_round = integrate_normals(noisy, mask, method="l1", tol=1e-12, max_iter=2000)
+        torch.testing.assert_close(shared.depth, per_round.depth, atol=1e-8, rtol=0)
+        # and the robust solve still does its job
+        l2 = integrate_normals(noisy, mask).depth
+        assert depth_rmse(shared.depth, z[0, 0], mask) < 0.3 * depth_rmse(l2, z[0, 0], mask)
+
+    def test_rescaled_inverse_of_a_scaled_level_is_exact(self):
+        # another reweighting of the same mask reuses the inverse, times the trace ratio:
+        # exact when the new weights are the old ones times a constant
+        _, _, mask = _batch(*sphere_cap(40))
+        m = mask[:, 0]
+        g = torch.Generator().manual_seed(0)
+        wx = torch.rand(1, 40, 40, generator=g, dtype=F64) * F.pad(m[..., :, 1:] & m[..., :, :-1], (0, 1))
+        wy = torch.rand(1, 40, 40, generator=g, dtype=F64) * F.pad(m[..., 1:, :] & m[..., :-1, :], (0, 0, 0, 1))
+        coarse = _Multigrid(_Level(wx, wy)).coarse
+        scaled = _Multigrid(_Level(0.25 * wx, 0.25 * wy), coarse=coarse)
+        fresh = _Multigrid(_Level(0.25 * wx, 0.25 * wy))
+        assert scaled.coarse is coarse
+        torch.testing.assert_close(scaled.coarse_inv, fresh.coarse_inv, atol=1e-9, rtol=1e-9)
+
+    def test_coarse_inverse_on_the_input_device(self, device, monkeypatch):
+        _, n, mask = _batch(*gaussian_bump(32, device=device))
+        seen = []
+        pinv = torch.linalg.pinv
+        monkeypatch.setattr(torch.linalg, "pinv", lambda a, **kw: seen.append((a.device, a.dtype)) or pinv(a, **kw))
+        out = integrate_normals(n.float(), mask, method="l1", l1_iter=2)
+        assert seen == [(n.device, F64)]
+        assert out.depth.device == n.device and out.depth.dtype == torch.float32
+        inv = _CoarseInverse(_Level(torch.ones(1, 4, 4, device=device), torch.ones(1, 4, 4, device=device))).inv
+        assert inv.device == n.device and inv.dtype == torch.float32
 
 
 class TestIntegrateL1:

@@ -14,6 +14,7 @@ from sfs_torch.silhouette import (
     coarse_normals,
     euclidean_distance_transform,
     _edt_squared_torch,
+    _lower_envelope,
     medial_axis,
     silhouette_distances,
     silhouette_features,
@@ -126,6 +127,86 @@ class TestEuclideanDistanceTransform:
             euclidean_distance_transform(torch.full((1, 1, 5, 5), 2.0))
         with pytest.raises(TypeError, match="mask"):
             euclidean_distance_transform(np.zeros((5, 5), bool))
+
+
+class TestTorchTransform:
+    """``_edt_squared_torch`` (every non-CPU device) on edge cases, against SciPy."""
+
+    @staticmethod
+    def _check(mask: np.ndarray, device="cpu"):
+        dist2, rows, cols = _edt_squared_torch(torch.from_numpy(mask).to(device))
+        dist2, rows, cols = dist2.cpu(), rows.cpu(), cols.cpu()
+        for b, m in enumerate(mask):
+            if m.all():
+                assert torch.isinf(dist2[b]).all()
+                continue
+            ref = np.rint(ndimage.distance_transform_edt(m) ** 2)
+            np.testing.assert_array_equal(dist2[b].numpy(), ref)
+            r = torch.arange(m.shape[0])[:, None]
+            c = torch.arange(m.shape[1])[None, :]
+            assert not m[rows[b].numpy(), cols[b].numpy()].any()
+            assert torch.equal(((rows[b] - r) ** 2 + (cols[b] - c) ** 2).float(), dist2[b])
+        return dist2
+
+    def test_empty_mask(self, device):
+        assert not self._check(np.zeros((1, 7, 9), bool), device).any()
+
+    def test_full_mask(self, device):
+        # no background at all: inf everywhere, also next to an ordinary element
+        mask = np.ones((2, 6, 5), bool)
+        mask[1, 2, 3] = False
+        dist2 = self._check(mask, device)
+        assert torch.isinf(dist2[0]).all() and torch.isfinite(dist2[1]).all()
+
+    def test_one_pixel(self, device):
+        one_fg = np.zeros((1, 5, 8), bool)
+        one_fg[0, 2, 3] = True
+        assert float(self._check(one_fg, device).max()) == 1.0
+        one_bg = ~one_fg  # every distance measured to a single background pixel
+        dist2 = self._check(one_bg, device)
+        assert float(dist2[0, 4, 7]) == 2.0 * 2.0 + 4.0 * 4.0
+
+    def test_single_row_and_column(self, device):
+        for shape in ((1, 1, 9), (1, 9, 1), (1, 1, 1)):
+            mask = np.ones(shape, bool)
+            mask.flat[len(mask.flat) // 2] = False
+            self._check(mask, device)
+
+    def test_border_touching(self, device):
+        mask = np.zeros((3, 30, 41), bool)
+        mask[0, :, :20] = True  # cut by three borders
+        mask[1, 5:, 10:] = True  # a corner
+        mask[2] = True
+        mask[2, 0, 0] = False  # one background pixel in a corner: distances up to the far corner
+        self._check(mask, device)
+
+    def test_large(self, device):
+        mask, _, _ = disk(300, 145.0)  # distances near 145, near the sizes the pipeline uses
+        self._check(mask[None], device)
+
+
+class TestLowerEnvelope:
+    @staticmethod
+    def _brute(f):
+        n = f.shape[1]
+        j = torch.arange(n, dtype=torch.float64)
+        return (f.double()[:, None, :] + (j[:, None] - j[None, :]) ** 2).min(2)
+
+    @pytest.mark.parametrize("max_site", [30 * 30, 1 << 40], ids=["int32", "int64"])
+    def test_equals_brute_force(self, max_site):
+        g = torch.Generator().manual_seed(0)
+        for _ in range(100):
+            n = int(torch.randint(1, 50, (1,), generator=g))
+            f = torch.randint(0, 31, (4, n), generator=g).float() ** 2
+            f[torch.rand(4, n, generator=g) < float(torch.rand(1, generator=g))] = math.inf
+            f[0] = math.inf  # a row without sites
+            value, arg = _lower_envelope(f, max_site=max_site)
+            ref, ref_arg = self._brute(f)
+            assert torch.equal(value.double(), ref)
+            finite = torch.isfinite(ref)
+            # the leftmost argmin (ties go to the smaller column)
+            assert torch.equal(arg[finite], ref_arg[finite])
+            assert bool(torch.isinf(value[0]).all())
 
 
 class TestMedialAxis:
