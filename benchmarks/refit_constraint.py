@@ -2,7 +2,7 @@
 
 The images are those of ``benchmarks/end_to_end.py`` with the same arguments (the same
 shapes, views, lightings and noise); each is estimated in unknown lighting (the forest
-alone, ``refine.when=never``) with ``reflectance_map.valid_refit`` true and false.
+alone, ``refine.when=never``) with ``valid_refit`` true and false.
 
     python benchmarks/refit_constraint.py --shapes 6 --lights 5
     python benchmarks/refit_constraint.py --shapes 5 --lights 3 --focal 300
@@ -33,8 +33,7 @@ def main() -> None:
     for scene in synthetic_scenes(scene_shapes(args.shapes, "test"), evaluation_lightings(args.lights), focal=args.focal):
         row = {"shape": scene.shape, "lighting": scene.lighting_name}
         for valid in (True, False):
-            config = {"training": {"cache_forests": "never"}, "refine": {"when": "never"},
-                      "reflectance_map": {"valid_refit": valid}}
+            config = {"training": {"cache_forests": "never"}, "refine": {"when": "never"}, "valid_refit": valid}
             est = sfs_torch.estimate(scene.image, scene.mask, focal=args.focal, config=config, progress=False)
             error = normal_metrics(est.normals, scene.normals, scene.mask).median[0]
             row["valid" if valid else "unconstrained"] = float(error)

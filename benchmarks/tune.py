@@ -9,7 +9,7 @@ reporting an ablation of choices already made, never for making one.
 
     python benchmarks/tune.py --variants '{}' '{"training": {"brightness_jitter": 0.1}}'
     python benchmarks/tune.py --degradation all --shapes 4 --lights 3 --variants '{}' ...
-    python benchmarks/tune.py --side test --shapes 5 --lights 3 --variants '{"reflectance_map": {"refine_rounds": 0}}' '{}'
+    python benchmarks/tune.py --side test --shapes 5 --lights 3 --variants '{"refine_rounds": 0}' '{}'
 """
 from __future__ import annotations
 

@@ -32,16 +32,13 @@ class CameraConfig:
     Attributes:
         focal: focal length in pixels, or ``None`` for an orthographic camera.
         principal_point: ``(cx, cy)`` in pixels; ``None`` for the image centre.
-        normal_rotation: how the pipeline turns normals predicted in an orthographic
-            frame into the perspective camera frame: ``"centroid"``, the one rotation
-            of the object's centroid (the frame its training lighting is expressed in),
-            or ``"pixel"``, each pixel's own :func:`perspective_rotation` (the paper's
-            Sec. 8 rule). See docs/pipeline.md for the measurements behind the default.
+
+    How :func:`sfs_torch.estimate` turns the forest's normals into this camera's frame
+    is the pipeline's ``normal_rotation`` (:class:`sfs_torch.pipeline.PipelineConfig`).
     """
 
     focal: Optional[float] = None
     principal_point: Optional[Tuple[float, float]] = None
-    normal_rotation: str = "centroid"
 
 
 def _positive_focal(focal) -> float:

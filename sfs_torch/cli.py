@@ -34,15 +34,18 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from . import io  # noqa: E402
 from ._app import exit_unless_writable, output_folder, parse_device  # noqa: E402
 from .figures import confidence_display_max, summary_figure  # noqa: E402
-from .geometry_db import evaluation_shapes  # noqa: E402
+from .forest import ForestConfig  # noqa: E402
+from .geometry_db import DatabaseConfig, evaluation_shapes  # noqa: E402
 from .integrability import depth_to_mesh  # noqa: E402
 from .lighting import natural_lightings, render_sh, render_sphere  # noqa: E402
 from .metrics import lmse, normal_metrics  # noqa: E402
 from .novel_view import NovelViewConfig, render_novel_view  # noqa: E402
-from .pipeline import Estimate, PipelineConfig, estimate  # noqa: E402
+from .pipeline import Estimate, PipelineConfig, TrainingConfig, estimate, moved_option_hint, resolve_config  # noqa: E402
 from .preview import RENDERERS, RendererChoice, _check_name, choose_renderer, gl_context  # noqa: E402
+from .reflectance_map import ReflectanceMapConfig  # noqa: E402
 from .rendering import random_view_rotations, render_normals  # noqa: E402
-from .silhouette import coarse_normals  # noqa: E402
+from .silhouette import SilhouetteConfig, coarse_normals  # noqa: E402
+from .texton import TextonConfig  # noqa: E402
 
 log = logging.getLogger("sfs_torch")
 
@@ -92,14 +95,23 @@ class AppConfig(PipelineConfig):
     demo: DemoConfig = field(default_factory=DemoConfig)
 
 
-ConfigStore.instance().store(name="sfs_torch_schema", node=AppConfig)
+_store = ConfigStore.instance()
+_store.store(name="sfs_torch_schema", node=AppConfig)
+# The groups whose one option is the stage's config class as it is (``database=default`` ...):
+# their values live in the classes alone. The other groups' options are the YAML files of
+# conf/ (features/, integrate/, camera/, refine/, database/blobby.yaml), which override them.
+STAGE_GROUPS = {"database": DatabaseConfig, "silhouette": SilhouetteConfig, "texton": TextonConfig,
+                "reflectance_map": ReflectanceMapConfig, "training": TrainingConfig, "forest": ForestConfig}
+for _group, _node in STAGE_GROUPS.items():
+    _store.store(group=_group, name="default", node=_node)
 # hydra.run.dir is `out` when given, else a dated folder (oc.select keeps a null value).
 OmegaConf.register_new_resolver("sfs_torch_or", lambda value, default: default if value is None else value, replace=True)
 
 
-def _pipeline_config(cfg: DictConfig) -> DictConfig:
+def _pipeline_config(cfg: DictConfig) -> PipelineConfig:
+    """The pipeline's options of the app's config, every one checked (:func:`~sfs_torch.pipeline.resolve_config`)."""
     keep = set(PipelineConfig.__dataclass_fields__)
-    return OmegaConf.create({k: v for k, v in OmegaConf.to_container(cfg, resolve=True).items() if k in keep})
+    return resolve_config(OmegaConf.create({k: v for k, v in OmegaConf.to_container(cfg, resolve=True).items() if k in keep}))
 
 
 def _demo_inputs(cfg: DictConfig, device: torch.device) -> Dict[str, Any]:
@@ -151,7 +163,7 @@ class _NovelView:
     resolution: int
 
 
-def _novel_view(cfg: DictConfig, pipeline_cfg: DictConfig) -> _NovelView:
+def _novel_view(cfg: DictConfig, pipeline_cfg: PipelineConfig) -> _NovelView:
     """Validate ``novel_view`` and resolve its renderer, before any work.
 
     The renderer is resolved (an OpenGL context made, ~1 s) only when a novel view will be
@@ -184,7 +196,7 @@ def _novel_view(cfg: DictConfig, pipeline_cfg: DictConfig) -> _NovelView:
     return _NovelView(choice, azimuth, elevation, resolution)
 
 
-def _write_outputs(out: Path, est: Estimate, camera: DictConfig, mesh_formats: Tuple[str, ...],
+def _write_outputs(out: Path, est: Estimate, camera: Any, mesh_formats: Tuple[str, ...],
                    novel_view: Optional[_NovelView] = None) -> None:
     normals = est.normals.cpu()
     io.write_normals_npy(out / "normals.npy", normals)
@@ -211,7 +223,7 @@ def _write_outputs(out: Path, est: Estimate, camera: DictConfig, mesh_formats: T
         io.write_image(out / "novel_view.png", image)
 
 
-def _depth_description(decode: Dict[str, float], camera: DictConfig) -> Dict[str, Any]:
+def _depth_description(decode: Dict[str, float], camera: Any) -> Dict[str, Any]:
     """``depth.json``: how ``depth.png`` decodes to the values of ``depth.npy``, and what they mean."""
     if camera.focal is None:
         meaning = "orthographic: height towards the viewer (camera-frame z, larger = nearer) in pixels, up to an offset"
@@ -254,10 +266,10 @@ def run(cfg: DictConfig) -> Dict[str, float]:
     """
     if cfg.get("input_dir") is not None:
         raise ValueError("input_dir is a batch run: call sfs_torch.cli.run_batch (the command does)")
+    pipeline_cfg = _pipeline_config(cfg)
     device = _device(cfg.device)
     mesh_formats = _mesh_formats(cfg.mesh_formats)
     out = _output_folder(cfg)
-    pipeline_cfg = _pipeline_config(cfg)
     novel_view = _novel_view(cfg, pipeline_cfg)
     true_normals = true_lighting = None
     if cfg.image is None:
@@ -284,7 +296,7 @@ def run(cfg: DictConfig) -> Dict[str, float]:
 
 
 def _estimate_and_publish(
-    out: Path, image: torch.Tensor, mask: torch.Tensor, known: Optional[torch.Tensor], pipeline_cfg: DictConfig,
+    out: Path, image: torch.Tensor, mask: torch.Tensor, known: Optional[torch.Tensor], pipeline_cfg: PipelineConfig,
     mesh_formats: Tuple[str, ...], title: str, *, true_normals: Optional[torch.Tensor] = None,
     true_lighting: Optional[torch.Tensor] = None, progress: bool = True, novel_view: Optional[_NovelView] = None,
 ) -> Dict[str, float]:
@@ -302,14 +314,15 @@ def _estimate_and_publish(
     staging = Path(tempfile.mkdtemp(prefix=".sfs-torch-partial-", dir=out))
     try:
         _write_outputs(staging, est, pipeline_cfg.camera, mesh_formats, novel_view)
-        numbers = _finish(staging, est, image, mask, title, true_normals, true_lighting)
+        numbers = _finish(staging, est, image, mask, title, true_normals, true_lighting, pipeline_cfg.silhouette)
         _publish(staging, out)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return numbers
 
 
-def _finish(out: Path, est: Estimate, image, mask, title: str, true_normals, true_lighting) -> Dict[str, float]:
+def _finish(out: Path, est: Estimate, image, mask, title: str, true_normals, true_lighting,
+            silhouette: Optional[SilhouetteConfig] = None) -> Dict[str, float]:
     """Write the key numbers (``metrics.json``) and the summary figure; return the numbers."""
     numbers: Dict[str, float] = {}
     for stage, seconds in est.timings.items():
@@ -317,7 +330,7 @@ def _finish(out: Path, est: Estimate, image, mask, title: str, true_normals, tru
     if true_normals is not None:
         truth = true_normals.cpu()[None]
         metrics = normal_metrics(est.normals[None].cpu(), truth, mask[None].cpu())
-        baseline = normal_metrics(coarse_normals(mask[None].cpu()), truth, mask[None].cpu())
+        baseline = normal_metrics(coarse_normals(mask[None].cpu(), config=silhouette), truth, mask[None].cpu())
         scores = {
             "median error (deg)": float(metrics.median[0]),
             "mean error (deg)": float(metrics.mean[0]),
@@ -406,11 +419,11 @@ def run_batch(cfg: DictConfig) -> BatchResult:
             checked before any item is read.
         FileNotFoundError: ``input_dir`` does not exist.
     """
+    pipeline_cfg = _pipeline_config(cfg)
     _device(cfg.device)
     mesh_formats = _mesh_formats(cfg.mesh_formats)
     out = _output_folder(cfg)
     folders = _batch_folders(cfg, out)
-    pipeline_cfg = _pipeline_config(cfg)
     novel_view = _novel_view(cfg, pipeline_cfg)
     expected = _expected_outputs(pipeline_cfg, mesh_formats)
     out.mkdir(parents=True, exist_ok=True)
@@ -472,7 +485,7 @@ def _batch_folders(cfg: DictConfig, out: Path) -> List[Path]:
     return folders
 
 
-def _expected_outputs(pipeline_cfg: DictConfig, mesh_formats: Tuple[str, ...]) -> Tuple[str, ...]:
+def _expected_outputs(pipeline_cfg: PipelineConfig, mesh_formats: Tuple[str, ...]) -> Tuple[str, ...]:
     """The files a run with these options writes for every item."""
     names = list(REQUIRED_OUTPUTS)
     if pipeline_cfg.integrate.method is not None:
@@ -480,7 +493,7 @@ def _expected_outputs(pipeline_cfg: DictConfig, mesh_formats: Tuple[str, ...]) -
     return tuple(names)
 
 
-def _batch_item(cfg: DictConfig, folder: Path, target: Path, pipeline_cfg: DictConfig,
+def _batch_item(cfg: DictConfig, folder: Path, target: Path, pipeline_cfg: PipelineConfig,
                 mesh_formats: Tuple[str, ...], expected: Tuple[str, ...],
                 novel_view: Optional[_NovelView] = None) -> BatchItem:
     """Run one item; a failure becomes a ``failed`` row (and one log line), never an exception."""
@@ -495,8 +508,8 @@ def _batch_item(cfg: DictConfig, folder: Path, target: Path, pipeline_cfg: DictC
         camera = {key: value for key, value in (("focal", scene.focal), ("principal_point", scene.principal_point))
                   if value is not None}
         if camera:  # camera.json overrides camera.focal / camera.principal_point for this item
-            item_cfg = OmegaConf.merge(pipeline_cfg, {"camera": {k: list(v) if isinstance(v, tuple) else v
-                                                                 for k, v in camera.items()}})
+            item_cfg = resolve_config(OmegaConf.merge(pipeline_cfg, {"camera": {k: list(v) if isinstance(v, tuple) else v
+                                                                                for k, v in camera.items()}}))
         known = scene.lighting[0] if scene.lighting_name == "given" else None
         true_normals = None if scene.normals is None else scene.normals[0]
         numbers = _estimate_and_publish(
@@ -581,10 +594,15 @@ def _main(cfg: DictConfig) -> None:
 
 
 def _check_out_argument(args: list) -> None:
-    """Fail with one line when ``out=`` cannot be written, before Hydra sets up its log file there."""
+    """Fail with one line when ``out=`` cannot be written, before Hydra sets up its log file there,
+    or when an option is given under the key it had before it moved (``MOVED_OPTIONS``)."""
     for arg in args:
         if arg.startswith("out=") and arg[4:] not in ("", "null"):
             exit_unless_writable(Path(arg[4:]), f"sfs-torch: cannot write to out={arg[4:]}")
+        hint = moved_option_hint(arg)
+        if hint:
+            print(f"sfs-torch: {hint}", file=sys.stderr)
+            sys.exit(2)
 
 
 def main() -> None:

@@ -51,7 +51,7 @@ from torch import Tensor  # noqa: E402
 from ._app import exit_unless_writable, output_folder, parse_device  # noqa: E402
 from .datasets import DEGRADATIONS, EVALUATION_LIGHTINGS, Scene  # noqa: E402
 from .metrics import lmse, normal_metrics  # noqa: E402
-from .pipeline import FeatureConfig, PipelineConfig, TrainingConfig, resolve_config  # noqa: E402
+from .pipeline import FeatureConfig, PipelineConfig, TrainingConfig, moved_option_hint, resolve_config  # noqa: E402
 from .refine import RefineConfig, check_refine_config  # noqa: E402
 
 __all__ = [
@@ -753,8 +753,11 @@ def _plan(cfg: DictConfig) -> _Plan:
         _root(cfg.dataset)
     _check_int(cfg.limit, "limit", 1, allow_none=True)
     device = _device(cfg.device)
-    pipeline = resolve_config(cfg.pipeline)
-    check_refine_config(pipeline.refine)
+    try:
+        pipeline = resolve_config(cfg.pipeline)  # every option checked, before any case is read
+    except ValueError as err:
+        message = str(err)
+        raise ValueError(message if message.startswith("config ") else f"pipeline.{message}") from None
     classical = OmegaConf.to_object(cfg.classical) if isinstance(cfg.classical, DictConfig) else cfg.classical
     try:
         check_refine_config(classical)
@@ -908,6 +911,10 @@ def _check_arguments(args: Sequence[str]) -> None:
                     sys.exit(2)
         if key == "out" and value not in ("", "null") and "," not in value:
             exit_unless_writable(Path(value), f"{PROGRAM}: error: cannot write to out={value}")
+        hint = moved_option_hint(arg, prefix="pipeline.")
+        if hint:
+            print(f"{PROGRAM}: error: {hint}", file=sys.stderr)
+            sys.exit(2)
 
 
 def main() -> None:

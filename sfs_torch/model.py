@@ -10,11 +10,15 @@ implementation of the pipeline.
 """
 from __future__ import annotations
 
+from dataclasses import fields, replace
 from typing import Any, Dict, Optional, Sequence, Union
 
+import torch
 from omegaconf import DictConfig
 from torch import Tensor, nn
 
+from . import geometry_db
+from .geometry_db import DatabaseConfig, GeometryDatabase
 from .pipeline import Estimate, PipelineConfig, estimate, resolve_config
 
 __all__ = ["ShapeFromShading"]
@@ -27,14 +31,18 @@ class ShapeFromShading(nn.Module):
     inputs, same :class:`~sfs_torch.pipeline.Estimate`, computed on the device of
     ``image`` (a numpy image runs on the CPU).
 
-    State: the module holds its options only, no tensors, parameters or buffers, so
-    ``.to(device)`` / ``.cuda()`` return it unchanged and the device is chosen by the
-    input. Nothing is kept between calls either: as in :func:`~sfs_torch.pipeline.estimate`,
-    every call loads the example-geometry database (built and stored in the on-disk cache
-    under ``SFS_TORCH_CACHE`` on first use, read from it afterwards), shades it for the
-    call's lighting and trains a forest for it (or reads that forest from the on-disk forest
-    cache, ``training.cache_forests``). The forest is deterministic given
-    ``forest.seed``, so two calls on the same input give the same result.
+    State: the module holds its options and, from its first call on, the example-geometry
+    database of ``config.database``: loaded once (built and stored in the on-disk cache
+    under ``SFS_TORCH_CACHE`` on first use, read and verified from it afterwards), then kept
+    on every device that an input came on, moved there once, and handed to
+    :func:`~sfs_torch.pipeline.estimate` (``database=``) instead of reading the file on each
+    call. :meth:`database` gives it; changing ``config.database`` drops it, and
+    :meth:`clear_database` frees it. It is no parameter or buffer: ``state_dict()`` is
+    empty, ``.to(device)`` / ``.cuda()`` return the module unchanged and the device is
+    chosen by the input. Every call shades the database for the call's lighting and trains
+    a forest for it (or reads that forest from the on-disk forest cache,
+    ``training.cache_forests``). The forest is deterministic given ``forest.seed``, so
+    two calls on the same input give the same result.
 
     Args:
         config: a :class:`~sfs_torch.pipeline.PipelineConfig`, a (nested) dict or an
@@ -61,6 +69,34 @@ class ShapeFromShading(nn.Module):
         super().__init__()
         self.config: PipelineConfig = resolve_config(config)
         self.progress = bool(progress)
+        # the database of _database_config, by device: the CPU one as loaded, the others moved from it
+        self._databases: Dict[torch.device, GeometryDatabase] = {}
+        self._database_config: Optional[DatabaseConfig] = None
+
+    def database(self, device: Union[str, torch.device, None] = None) -> GeometryDatabase:
+        """The example-geometry database of ``config.database`` on ``device`` (default CPU).
+
+        Loaded by :func:`~sfs_torch.geometry_db.load_database` on the first request (and
+        after ``config.database`` changed), moved to each device once; later requests
+        return the same tensors.
+        """
+        device = torch.device("cpu" if device is None else device)
+        if device.type == "cuda" and device.index is None:
+            device = torch.device("cuda", torch.cuda.current_device())
+        if self._database_config != self.config.database:
+            self._databases.clear()
+            self._database_config = replace(self.config.database)
+        cpu = torch.device("cpu")
+        if cpu not in self._databases:
+            self._databases[cpu] = geometry_db.load_database(self._database_config, progress=self.progress)
+        if device not in self._databases:
+            self._databases[device] = _database_to(self._databases[cpu], device)
+        return self._databases[device]
+
+    def clear_database(self) -> None:
+        """Drop the held database (every device); the next call loads it again."""
+        self._databases.clear()
+        self._database_config = None
 
     def forward(
         self,
@@ -99,6 +135,7 @@ class ShapeFromShading(nn.Module):
             integrate=integrate,
             config=self.config,
             progress=self.progress,
+            database=self.database(image.device if isinstance(image, Tensor) else None),
         )
 
     def extra_repr(self) -> str:
@@ -107,3 +144,11 @@ class ShapeFromShading(nn.Module):
             f"database={cfg.database.collection!r}, forest=(n_trees={cfg.forest.n_trees}, "
             f"max_depth={cfg.forest.max_depth}), integrate={cfg.integrate.method!r}, focal={cfg.camera.focal}"
         )
+
+
+def _database_to(db: GeometryDatabase, device: torch.device) -> GeometryDatabase:
+    """``db`` with its tensors on ``device`` (``db`` itself when they are there)."""
+    tensors = {f.name: getattr(db, f.name) for f in fields(db) if isinstance(getattr(db, f.name), Tensor)}
+    if all(t.device == device for t in tensors.values()):
+        return db
+    return replace(db, **{name: t.to(device) for name, t in tensors.items()})

@@ -9,7 +9,7 @@
 4. a von Mises-Fisher regression forest trained on it (:mod:`sfs_torch.forest`),
    cached by lighting, predicts every object pixel independently; with an estimated
    lighting, the lighting is then refitted to the image from these normals and a
-   forest trained for it predicts again (``reflectance_map.refine_rounds``, default 1;
+   forest trained for it predicts again (``refine_rounds``, default 1;
    an addition to the paper that measurably helps, see docs/pipeline.md);
 5. perspective: the normals, predicted in the object's orthographic frame, rotated
    into the camera frame (:mod:`sfs_torch.camera`);
@@ -39,10 +39,12 @@ from .camera import CameraConfig, _positive_focal, centroid_rotation, rotate_nor
 from .forest import VMF, ForestConfig, VMFForest, sample_vmf
 from .forest_cache import CACHE_POLICIES, evict_forests, forest_path, load_forest, save_forest
 from .geometry_db import DatabaseConfig, GeometryDatabase, load_database
+from .geometry_db import _check_config as _check_database_config
 from .image_formation import estimate_noise_sigma
-from .integrability import IntegrabilityConfig, integrate_convex, integrate_normals
+from .integrability import IntegrabilityConfig, Integrator
 from .lighting import fit_sh_vectors, render_sh, rotate_sh, sh_basis_vectors
 from .reflectance_map import (
+    PROFILES,
     VALIDITY_DIRECTIONS,
     ReflectanceMapConfig,
     estimate_lighting,
@@ -50,14 +52,24 @@ from .reflectance_map import (
     refit_lighting,
 )
 from .refine import RefineConfig, check_refine_config, photometric_residual, refine_shape_and_lighting
-from .silhouette import coarse_normals, silhouette_features
-from .texton import N_TEXTON_FILTERS, TextonConfig, texton_features
+from .silhouette import SilhouetteConfig, coarse_normals, silhouette_features
+from .texton import N_TEXTON_FILTERS, TextonConfig, _check_kernel_size, texton_features
 
-__all__ = ["FeatureConfig", "TrainingConfig", "PipelineConfig", "Estimate", "estimate", "training_set", "pixel_features"]
+__all__ = ["FeatureConfig", "TrainingConfig", "PipelineConfig", "Estimate", "estimate", "resolve_config", "training_set",
+           "pixel_features"]
 
 log = logging.getLogger(__name__)
 
 INTEGRATION_METHODS = (None, "l2", "l1", "conv")
+NORMAL_ROTATIONS = ("centroid", "pixel")
+# options that were in a stage's config until they moved to the pipeline's own: old key -> new key
+MOVED_OPTIONS = {
+    "reflectance_map.refine_rounds": "refine_rounds",
+    "reflectance_map.valid_refit": "valid_refit",
+    "reflectance_map.keep_prior": "keep_prior",
+    "camera.normal_rotation": "normal_rotation",
+    "training.conv_samples_per_tree": "conv_samples_per_tree",
+}
 
 
 @dataclass
@@ -93,7 +105,6 @@ class TrainingConfig:
             estimated lightings (reused only when the same image comes again), ``"never"``.
         max_cached_forests: the most forests kept on disk; the least recently used
             beyond it are deleted.
-        conv_samples_per_tree: samples drawn from each tree's leaf for ``integrate="conv"``.
     """
 
     noise_sigma: float = 0.001
@@ -103,14 +114,42 @@ class TrainingConfig:
     seed: int = 0
     cache_forests: str = "given"
     max_cached_forests: int = 64
-    conv_samples_per_tree: int = 1
 
 
 @dataclass
 class PipelineConfig:
-    """Every option of :func:`estimate`; ``conf/`` holds the same defaults as YAML."""
+    """Every option of :func:`estimate`: each stage's options (its config class, beside its
+    code; a Hydra group of ``sfs-torch``) and the pipeline's own.
+
+    Attributes:
+        database: the example geometry (:class:`~sfs_torch.geometry_db.DatabaseConfig`).
+        silhouette: the silhouette features of the test image, the lighting estimate, the
+            prior check and the refinement's rim
+            (:class:`~sfs_torch.silhouette.SilhouetteConfig`).
+        texton, reflectance_map, features, training, forest, integrate, camera, refine:
+            the other stages' options.
+        refine_rounds: when the lighting is estimated, this many times it is refitted to
+            the image from the forest's normals (:func:`~sfs_torch.reflectance_map.refit_lighting`)
+            and a forest trained for it predicts again; a round whose normals explain the
+            image worse than the round before is dropped. 0 is the paper's method; each
+            round costs one more forest.
+        valid_refit: constrain those refits to a physically valid lighting (``refit_lighting``'s
+            ``valid``), and start them from the valid lighting nearest the silhouette
+            estimate (which can shade parts of the hemisphere negative).
+        keep_prior: return the silhouette prior (Eq. 10's coarse normals with their own
+            refitted lighting, or with the given lighting) instead of the forest's normals
+            when it explains the image better (:func:`sfs_torch.refine.photometric_residual`).
+        normal_rotation: how normals predicted in an orthographic frame are turned into
+            a perspective camera's frame: ``"centroid"``, the one rotation of the object's
+            centroid (the frame its training lighting is expressed in), or ``"pixel"``, each
+            pixel's own :func:`~sfs_torch.camera.perspective_rotation` (the paper's Sec. 8
+            rule); docs/pipeline.md has the measurements behind the default.
+        conv_samples_per_tree: samples drawn from each tree's leaf as the candidates of
+            ``integrate="conv"``.
+    """
 
     database: DatabaseConfig = field(default_factory=DatabaseConfig)
+    silhouette: SilhouetteConfig = field(default_factory=SilhouetteConfig)
     texton: TextonConfig = field(default_factory=TextonConfig)
     reflectance_map: ReflectanceMapConfig = field(default_factory=ReflectanceMapConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)
@@ -119,6 +158,11 @@ class PipelineConfig:
     integrate: IntegrabilityConfig = field(default_factory=IntegrabilityConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
+    refine_rounds: int = 1
+    valid_refit: bool = True
+    keep_prior: bool = True
+    normal_rotation: str = "centroid"
+    conv_samples_per_tree: int = 1
 
 
 @dataclass(frozen=True)
@@ -129,7 +173,7 @@ class Estimate:
         normals: :math:`(B, 3, H, W)` camera-frame unit normals, 0 outside the mask.
         confidence: :math:`(B, 1, H, W)` forest concentration (vMF kappa), 0 outside.
         lighting: :math:`(B, 3, 9)` SH lighting, camera frame: the given one, or the
-            estimate after ``reflectance_map.refine_rounds`` refits (the one the
+            estimate after ``refine_rounds`` refits (the one the
             final forest was trained for), photometrically refined when
             ``refine.when="always"``.
         depth: :math:`(B, 1, H, W)` from integrability (``integrate=``) or from the
@@ -158,23 +202,151 @@ class _Timer:
 
 
 def resolve_config(config: Union[None, PipelineConfig, DictConfig, Dict[str, Any]]) -> PipelineConfig:
-    """Merge a partial config (dataclass, dict or omegaconf) onto the defaults and validate it."""
+    """Merge a partial config (dataclass, dict or omegaconf) onto the defaults and validate every option.
+
+    The checks are cheap (no database, no forest), so :func:`estimate`, the commands and
+    :class:`~sfs_torch.model.ShapeFromShading` call this before any work.
+
+    Raises:
+        ValueError: an unknown key, a value of the wrong type or out of range; the message
+            names the key (e.g. ``forest.n_trees``, ``refine_rounds``), and for a key that
+            moved to the pipeline's own options (:data:`MOVED_OPTIONS`) its new name.
+    """
     base = OmegaConf.structured(PipelineConfig)
     if config is None:
-        return OmegaConf.to_object(base)  # type: ignore[return-value]
+        cfg = OmegaConf.to_object(base)
+    else:
+        try:
+            override = config if isinstance(config, (dict, DictConfig)) else OmegaConf.structured(config)
+            cfg = OmegaConf.to_object(OmegaConf.merge(base, override))
+        except OmegaConfBaseException as err:
+            raise ValueError(f"config does not fit the pipeline's options: {moved_option_hint(config) or err}") from None
+    _check_config(cfg)  # type: ignore[arg-type]
+    return cfg  # type: ignore[return-value]
+
+
+def moved_option_hint(config: Any, prefix: str = "") -> Optional[str]:
+    """``"<old> is now <new>, ..."`` for the first key of :data:`MOVED_OPTIONS` that a (nested) dict,
+    omegaconf config or ``key=value`` override string uses under its old name (``prefix`` in front
+    of both, e.g. ``"pipeline."`` for ``sfs-torch-eval``); else ``None``."""
+    for old, new in MOVED_OPTIONS.items():
+        group, key = old.split(".")
+        if isinstance(config, str):
+            used = config.lstrip("+~").partition("=")[0] == prefix + old
+        else:
+            node = config.get(group) if isinstance(config, (dict, DictConfig)) else None
+            used = isinstance(node, (dict, DictConfig)) and key in node
+        if used:
+            return f"{prefix}{old} is now {prefix}{new}, an option of the pipeline itself, not of the {group} stage"
+    return None
+
+
+@contextmanager
+def _named(group: str) -> Iterator[None]:
+    """Put a stage's group in front of its check's message (``n_trees must ...`` -> ``forest.n_trees must ...``)."""
     try:
-        override = config if isinstance(config, (dict, DictConfig)) else OmegaConf.structured(config)
-        return OmegaConf.to_object(OmegaConf.merge(base, override))  # type: ignore[return-value]
-    except OmegaConfBaseException as err:
-        raise ValueError(f"config does not fit the pipeline's options: {err}") from None
+        yield
+    except ValueError as err:
+        message = str(err)
+        raise ValueError(message if message.startswith(f"{group}.") else f"{group}.{message}") from None
 
 
-def pixel_features(image: Tensor, mask: Tensor, features: FeatureConfig, texton_cfg: TextonConfig) -> Tensor:
+def _check_config(cfg: PipelineConfig) -> None:
+    """Validate every option of a merged config; ``ValueError`` naming the first bad key."""
+    with _named("database"):
+        _check_database_config(cfg.database)
+    _check_silhouette_config(cfg.silhouette)
+    if cfg.features.silhouette and cfg.silhouette != SilhouetteConfig():
+        default = asdict(SilhouetteConfig())
+        key, value = next((k, v) for k, v in asdict(cfg.silhouette).items() if v != default[k])
+        raise ValueError(
+            f"silhouette.{key}={value!r} needs features.silhouette=false: the example-geometry database's silhouette "
+            "features are computed with the default silhouette options, and the forest must see the same features "
+            "in the test image (the other uses of silhouette.*, the lighting estimate, the prior check and the "
+            "refinement's rim, take any value)"
+        )
+    with _named("texton"):
+        _check_kernel_size(cfg.texton.kernel_size)
+    if cfg.features.texton and cfg.texton.kernel_size != cfg.database.patch_size:
+        raise ValueError(
+            f"texton.kernel_size ({cfg.texton.kernel_size}) must equal database.patch_size ({cfg.database.patch_size}) "
+            "with features.texton: a training patch is filtered whole for its centre pixel's response"
+        )
+    _check_reflectance_map_config(cfg.reflectance_map)
+    if not (cfg.features.rgb or cfg.features.silhouette or cfg.features.texton):
+        raise ValueError("features enables no feature: set at least one of features.rgb, features.silhouette, "
+                         "features.texton")
+    _check_training_config(cfg.training)
+    _check_forest_config(cfg)
+    _check_integrate_config(cfg.integrate)
+    with _named("camera"):
+        _check_focal(cfg.camera.focal)
+        _check_principal_point(cfg.camera.principal_point, cfg.camera.focal, warn=False)
+    check_refine_config(cfg.refine)
+    if not (isinstance(cfg.refine_rounds, int) and cfg.refine_rounds >= 0):
+        raise ValueError(f"refine_rounds must be an integer >= 0, got {cfg.refine_rounds!r}")
+    if cfg.normal_rotation not in NORMAL_ROTATIONS:
+        raise ValueError(f"normal_rotation must be one of {NORMAL_ROTATIONS}, got {cfg.normal_rotation!r}")
+    if not (isinstance(cfg.conv_samples_per_tree, int) and cfg.conv_samples_per_tree >= 1):
+        raise ValueError(f"conv_samples_per_tree must be an integer >= 1, got {cfg.conv_samples_per_tree!r}")
+
+
+def _check_silhouette_config(cfg: SilhouetteConfig) -> None:
+    for name in ("prune_distance", "prune_angle", "prune_depth_ratio", "prune_window", "gradient_sigma"):
+        value = getattr(cfg, name)
+        if not (math.isfinite(value) and value >= 0):
+            raise ValueError(f"silhouette.{name} must be a finite number >= 0, got {value!r}")
+    if cfg.prune_angle > 180:
+        raise ValueError(f"silhouette.prune_angle must be in [0, 180] degrees, got {cfg.prune_angle!r}")
+    if not cfg.depth_layer_ratio > 1:  # inf allowed: the plain distance to the axis
+        raise ValueError(f"silhouette.depth_layer_ratio must be > 1 (inf for none), got {cfg.depth_layer_ratio!r}")
+
+
+def _check_reflectance_map_config(cfg: ReflectanceMapConfig) -> None:
+    if cfg.profile not in PROFILES:
+        raise ValueError(f"reflectance_map.profile must be one of {PROFILES}, got {cfg.profile!r}")
+    for name, minimum in (("n_directions", 9), ("min_k", 1), ("max_pixels", 1)):
+        if not getattr(cfg, name) >= minimum:
+            raise ValueError(f"reflectance_map.{name} must be an integer >= {minimum}, got {getattr(cfg, name)!r}")
+    if not 0 < cfg.knn_fraction <= 1:
+        raise ValueError(f"reflectance_map.knn_fraction must be in (0, 1], got {cfg.knn_fraction!r}")
+
+
+def _check_training_config(cfg: TrainingConfig) -> None:
+    for name in ("noise_sigma", "brightness_jitter", "colour_jitter"):
+        value = getattr(cfg, name)
+        if not (math.isfinite(value) and value >= 0):
+            raise ValueError(f"training.{name} must be a finite number >= 0, got {value!r}")
+    if cfg.cache_forests not in CACHE_POLICIES:
+        raise ValueError(f"training.cache_forests must be one of {CACHE_POLICIES}, got {cfg.cache_forests!r}")
+    if not (isinstance(cfg.max_cached_forests, int) and cfg.max_cached_forests >= 1):
+        raise ValueError(f"training.max_cached_forests must be an integer >= 1, got {cfg.max_cached_forests!r}")
+
+
+def _check_integrate_config(cfg: IntegrabilityConfig) -> None:
+    if cfg.method not in INTEGRATION_METHODS:
+        raise ValueError(f"integrate.method must be one of {INTEGRATION_METHODS} (e.g. integrate=l2), got {cfg.method!r}")
+    for name, minimum in (("max_iter", 1), ("l1_iter", 0), ("conv_iter", 0)):
+        if not getattr(cfg, name) >= minimum:
+            raise ValueError(f"integrate.{name} must be an integer >= {minimum}, got {getattr(cfg, name)!r}")
+    for name in ("tol", "l1_delta"):
+        if not getattr(cfg, name) > 0:
+            raise ValueError(f"integrate.{name} must be > 0, got {getattr(cfg, name)!r}")
+    if not 0 < cfg.min_nz < 1:
+        raise ValueError(f"integrate.min_nz must be in (0, 1), got {cfg.min_nz!r}")
+    if not cfg.conv_prior >= 0:
+        raise ValueError(f"integrate.conv_prior must be >= 0, got {cfg.conv_prior!r}")
+
+
+def pixel_features(image: Tensor, mask: Tensor, features: FeatureConfig, texton_cfg: TextonConfig,
+                   silhouette_cfg: Optional[SilhouetteConfig] = None) -> Tensor:
     """Per-pixel forest features of a test image, in the same order as :func:`training_set`.
 
     Args:
         image: :math:`(B, 3, H, W)` linear RGB.
         mask: :math:`(B, 1, H, W)` bool.
+        silhouette_cfg: options of the silhouette features; default
+            :class:`~sfs_torch.silhouette.SilhouetteConfig` (the database's).
 
     Returns:
         :math:`(B, F, H, W)` features (rgb, silhouette, texton; as enabled).
@@ -183,7 +355,7 @@ def pixel_features(image: Tensor, mask: Tensor, features: FeatureConfig, texton_
     if features.rgb:
         parts.append(image * mask)
     if features.silhouette:
-        parts.append(silhouette_features(mask).to(image.dtype))
+        parts.append(silhouette_features(mask, silhouette_cfg).to(image.dtype))
     if features.texton:
         parts.append(texton_features(image, mask, kernel_size=texton_cfg.kernel_size))
     if not parts:
@@ -230,9 +402,10 @@ def training_set(
         n = len(shaded)
         log_gain = brightness_jitter * torch.randn(n, 1, 1, 1, generator=generator, device=sh.device)
         log_gain = log_gain + colour_jitter * torch.randn(n, 3, 1, 1, generator=generator, device=sh.device)
-        shaded = shaded * log_gain.exp().to(shaded.dtype)
-    noisy = shaded + noise_sigma * torch.randn(shaded.shape, generator=generator, device=sh.device, dtype=shaded.dtype)
-    patches = noisy.clamp(0, 1) * masks
+        shaded.mul_(log_gain.exp().to(shaded.dtype))
+    # in place: each (N, 3, P, P) temporary costs about as much as the arithmetic on it
+    noise = torch.randn(shaded.shape, generator=generator, device=sh.device, dtype=shaded.dtype)
+    patches = noise.mul_(noise_sigma).add_(shaded).clamp_(0, 1).mul_(masks)
     centre = db.normals.shape[-1] // 2
     parts = []
     if features.rgb:
@@ -264,16 +437,28 @@ def _trained_forest(sh: Tensor, db: GeometryDatabase, cfg: PipelineConfig, timer
                 cfg.training.brightness_jitter, cfg.training.colour_jitter,
             )
         with timer("train forest"):
-            forest = VMFForest(**_forest_params(cfg), device=sh.device).fit(data.features, data.normals)
+            forest = _forest(cfg.forest, sh.device).fit(data.features, data.normals)
         if cached:
             save_forest(forest, path)
             evict_forests(path.parent, cfg.training.max_cached_forests)
     return forest
 
 
-def _forest_params(cfg: PipelineConfig) -> Dict[str, Any]:
-    """The forest's constructor arguments from the config (its ``_target_`` left out)."""
-    return {k: v for k, v in asdict(cfg.forest).items() if k != "_target_"}
+def _forest(cfg: ForestConfig, device: Optional[torch.device] = None) -> VMFForest:
+    """The unfitted forest that ``cfg`` describes: ``hydra.utils.instantiate`` of its ``_target_``,
+    :class:`~sfs_torch.forest.VMFForest` or a subclass (the forest cache stores and reads
+    ``VMFForest`` tensors)."""
+    from hydra.utils import instantiate
+
+    return instantiate(cfg, device=device)
+
+
+def _integrator(cfg: IntegrabilityConfig, method: str, focal: Optional[float],
+                principal_point: Optional[tuple]) -> Integrator:
+    """The integrability module that ``cfg`` describes (its ``_target_``, instantiated) for ``method``."""
+    from hydra.utils import instantiate
+
+    return instantiate(cfg, method=method, focal=focal, principal_point=principal_point, _convert_="all")
 
 
 def _as_image_tensor(image: Any) -> Tensor:
@@ -310,6 +495,7 @@ def estimate(
     config: Union[None, PipelineConfig, DictConfig, Dict[str, Any]] = None,
     *,
     progress: bool = True,
+    database: Optional[GeometryDatabase] = None,
 ) -> Estimate:
     """Estimate normals, lighting and confidence of a diffuse object from one image.
 
@@ -326,15 +512,25 @@ def estimate(
         integrate: ``None``, ``"l2"``, ``"l1"`` or ``"conv"`` (or ``config.integrate.method``).
         config: partial configuration merged onto the defaults (see ``conf/``).
         progress: show progress bars (database build).
+        database: the example-geometry database of ``config.database``, already loaded
+            (and ideally on the image's device), used instead of
+            :func:`~sfs_torch.geometry_db.load_database`, which reads and verifies the
+            cached file on every call. :class:`~sfs_torch.model.ShapeFromShading` holds
+            one per device and passes it here. It must be the one ``config.database``
+            describes: what its tensors show of that is checked (patch size, at most
+            ``n_shapes`` shapes and ``n_shapes * n_views * samples_per_view`` patches).
 
     Returns:
         :class:`Estimate`; tensors without the batch axis for unbatched input.
 
     Raises:
-        ValueError: bad shapes, dtypes, values, empty or full masks, unknown options.
+        ValueError: bad shapes, dtypes, values, empty or full masks, unknown options,
+            a ``database`` that does not fit ``config.database``.
+        TypeError: a ``database`` that is not a :class:`~sfs_torch.geometry_db.GeometryDatabase`.
     """
-    cfg = resolve_config(config)
-    check_refine_config(cfg.refine)
+    cfg = resolve_config(config)  # every option checked here, before any work
+    if database is not None:
+        _check_database(database, cfg.database)
     focal = _check_focal(cfg.camera.focal if focal is None else focal)
     principal_point = _check_principal_point(
         cfg.camera.principal_point if principal_point is None else principal_point, focal
@@ -342,7 +538,6 @@ def estimate(
     integrate = cfg.integrate.method if integrate is None else integrate
     if integrate not in INTEGRATION_METHODS:
         raise ValueError(f"integrate must be one of {INTEGRATION_METHODS}, got {integrate!r}")
-    _check_forest_config(cfg)
 
     image_t = _as_image_tensor(image)
     image_b, single = to_batch(image_t, "image", 3)
@@ -367,20 +562,21 @@ def estimate(
     batch = image_b.shape[0]
     with timer("lighting"):
         if lighting is None:
-            sh = estimate_lighting(image_b, mask_b, focal=focal, principal_point=principal_point, config=cfg.reflectance_map)
-            if cfg.reflectance_map.valid_refit:
+            sh = estimate_lighting(image_b, mask_b, focal=focal, principal_point=principal_point, config=cfg.reflectance_map,
+                                   silhouette=cfg.silhouette)
+            if cfg.valid_refit:
                 sh = _nearest_valid_lighting(sh)
         else:
             sh = known_lighting.to(image_b.device)
     with timer("database"):
-        db = load_database(cfg.database, progress=progress)
+        db = load_database(cfg.database, progress=progress) if database is None else database
     with timer("test features"):
-        feats = pixel_features(image_b, mask_b, cfg.features, cfg.texton)
+        feats = pixel_features(image_b, mask_b, cfg.features, cfg.texton, cfg.silhouette)
 
     train_cfg = cfg
     if lighting is not None:
         train_cfg = replace(cfg, training=replace(cfg.training, brightness_jitter=0.0, colour_jitter=0.0))
-    rounds = cfg.reflectance_map.refine_rounds if lighting is None else 0
+    rounds = cfg.refine_rounds if lighting is None else 0
     sh = sh.clone()
     normals = torch.zeros_like(image_b)
     confidence = torch.zeros_like(mask_b, dtype=image_b.dtype)
@@ -395,7 +591,7 @@ def estimate(
             if round_ > 0:
                 with timer("lighting refinement"):
                     sh[b] = refit_lighting(image_b[b : b + 1], mask_b[b : b + 1], normals[b : b + 1],
-                                           valid=cfg.reflectance_map.valid_refit)[0]
+                                           valid=cfg.valid_refit)[0]
             # Perspective: train in the object's own orthographic frame (the lighting
             # seen from its centroid), then rotate the predictions to the camera frame.
             local_sh = sh[b] if centroid is None else rotate_sh(sh[b], centroid.T.to(sh.dtype))
@@ -406,7 +602,7 @@ def estimate(
             normals[b].permute(1, 2, 0)[m] = pred.mean.to(normals.dtype)
             confidence[b, 0][m] = pred.kappa.to(confidence.dtype)
             if centroid is not None:
-                normals[b : b + 1] = _to_camera(normals[b : b + 1], centroid, focal, principal_point, cfg.camera.normal_rotation)
+                normals[b : b + 1] = _to_camera(normals[b : b + 1], centroid, focal, principal_point, cfg.normal_rotation)
             if rounds == 0:
                 continue
             residual = float(photometric_residual(normals[b : b + 1], sh[b : b + 1], image_b[b : b + 1], mask_b[b : b + 1])[0])
@@ -416,12 +612,11 @@ def estimate(
                 break
             best = (residual, sh[b].clone(), normals[b].clone(), confidence[b].clone(), forest)
         prior = None
-        if cfg.reflectance_map.keep_prior:
+        if cfg.keep_prior:
             with timer("prior check"):
                 prior = _better_prior(image_b[b : b + 1], mask_b[b : b + 1], normals[b : b + 1], sh[b : b + 1],
-                                      focal, principal_point, refit=lighting is None,
-                                      valid=cfg.reflectance_map.valid_refit,
-                                      forest_score=None if best is None else best[0])
+                                      focal, principal_point, refit=lighting is None, valid=cfg.valid_refit,
+                                      forest_score=None if best is None else best[0], silhouette=cfg.silhouette)
             if prior is not None:
                 normals[b], sh[b] = prior[0][0], prior[1][0]
                 # the prior carries no per-pixel confidence: the forest's median everywhere
@@ -431,11 +626,11 @@ def estimate(
         elif integrate == "conv":
             leaves = forest.predict_leaves(rows)
             generator = torch.Generator(device=rows.device).manual_seed(cfg.training.seed)
-            samples = sample_vmf(leaves, cfg.training.conv_samples_per_tree, generator).flatten(1, 2)  # (N, S, 3)
+            samples = sample_vmf(leaves, cfg.conv_samples_per_tree, generator).flatten(1, 2)  # (N, S, 3)
             cand = torch.zeros(samples.shape[1], 3, *m.shape, dtype=normals.dtype, device=normals.device)
             cand.permute(2, 3, 0, 1)[m] = samples.to(cand.dtype)
             if centroid is not None:
-                cand = _to_camera(cand, centroid, focal, principal_point, cfg.camera.normal_rotation)
+                cand = _to_camera(cand, centroid, focal, principal_point, cfg.normal_rotation)
             candidates.append(cand)
     normals = normals * mask_b
 
@@ -446,19 +641,13 @@ def estimate(
                 image_b, mask_b, normals, sh, confidence=confidence, focal=focal, principal_point=principal_point,
                 # a given lighting is trusted exactly, never refined
                 config=replace(cfg.refine, optimise_lighting=cfg.refine.optimise_lighting and lighting is None),
+                silhouette=cfg.silhouette,
             )
         depth, normals, sh = refined.depth, refined.normals, refined.lighting
     if integrate is not None:
         with timer(f"integrate ({integrate})"):
-            options = _solver_options(cfg.integrate, integrate)
-            if integrate == "conv":
-                surface = integrate_convex(
-                    torch.stack(candidates), mask_b, weights=confidence, focal=focal, principal_point=principal_point, **options
-                )
-            else:
-                surface = integrate_normals(
-                    normals, mask_b, method=integrate, weights=confidence, focal=focal, principal_point=principal_point, **options
-                )
+            integrator = _integrator(cfg.integrate, integrate, focal, principal_point)
+            surface = integrator(torch.stack(candidates) if integrate == "conv" else normals, mask_b, weights=confidence)
         depth, normals = surface.depth, surface.normals
     for stage, seconds in timer.seconds.items():
         log.info("%-28s %7.3f s", stage, seconds)
@@ -470,6 +659,30 @@ def estimate(
         normals=out(normals), confidence=out(confidence), lighting=out(sh), depth=out(depth), mask=out(mask_b),
         timings=dict(timer.seconds),
     )
+
+
+def _check_database(database: Any, cfg: DatabaseConfig) -> None:
+    """A database given to :func:`estimate` must fit ``cfg`` as far as its tensors show.
+
+    A :class:`~sfs_torch.geometry_db.GeometryDatabase` does not record its config, so this
+    catches the mistakes visible in the tensors (another patch size, more shapes or
+    patches than ``cfg`` draws), not e.g. another seed; no host sync, no file read.
+    """
+    if not isinstance(database, GeometryDatabase):
+        raise TypeError(f"database must be a GeometryDatabase (sfs_torch.geometry_db.load_database), "
+                        f"got {type(database).__name__}")
+    n, p = database.normals.shape[0], cfg.patch_size
+    shapes = {"normals": (database.normals, (n, 3, p, p)), "masks": (database.masks, (n, 1, p, p)),
+              "silhouette": (database.silhouette, (n, 3))}
+    for name, (tensor, expected) in shapes.items():
+        if tuple(tensor.shape) != expected:
+            raise ValueError(f"database does not match config.database (patch_size={p}): database.{name} must be "
+                             f"{expected}, got {tuple(tensor.shape)}")
+    most = cfg.n_shapes * cfg.n_views * cfg.samples_per_view
+    if len(database.shape_names) > cfg.n_shapes or n > most:
+        raise ValueError(f"database does not match config.database: {len(database.shape_names)} shapes and {n} "
+                         f"patches, but n_shapes={cfg.n_shapes}, n_views={cfg.n_views}, "
+                         f"samples_per_view={cfg.samples_per_view} draw at most {cfg.n_shapes} and {most}")
 
 
 def _with_image_noise(cfg: PipelineConfig, image: Tensor, mask: Tensor) -> PipelineConfig:
@@ -486,7 +699,8 @@ def _with_image_noise(cfg: PipelineConfig, image: Tensor, mask: Tensor) -> Pipel
 
 def _better_prior(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, focal: Optional[float],
                   principal_point: Optional[tuple], *, refit: bool, valid: bool,
-                  forest_score: Optional[float] = None) -> Optional[tuple]:
+                  forest_score: Optional[float] = None,
+                  silhouette: Optional[SilhouetteConfig] = None) -> Optional[tuple]:
     """The silhouette prior ``(normals, lighting)`` if it explains the image better than the forest's pair, else ``None``.
 
     The prior is Eq. 10's coarse normal field with, for an estimated lighting, its own
@@ -495,7 +709,7 @@ def _better_prior(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, foca
     already computed it). A blob-like object (a sphere above all) is the prior's case: there
     the forest's colour cue only adds error.
     """
-    coarse = coarse_normals(mask, focal=focal, principal_point=principal_point).to(normals.dtype)
+    coarse = coarse_normals(mask, focal=focal, principal_point=principal_point, config=silhouette).to(normals.dtype)
     prior_sh = refit_lighting(image, mask, coarse, valid=valid) if refit else sh
     if forest_score is None:
         forest_score = float(photometric_residual(normals, sh, image, mask)[0])
@@ -513,14 +727,7 @@ def _to_camera(normals: Tensor, centroid: Tensor, focal: float, principal_point,
         return rotate_normals_to_camera(normals, focal, principal_point)
     if rule == "centroid":
         return torch.einsum("ij,bjhw->bihw", centroid.to(normals.dtype), normals)
-    raise ValueError(f"camera.normal_rotation must be 'centroid' or 'pixel', got {rule!r}")
-
-
-def _solver_options(cfg: IntegrabilityConfig, method: str) -> Dict[str, Any]:
-    shared = {"max_iter": cfg.max_iter, "tol": cfg.tol, "min_nz": cfg.min_nz}
-    if method == "conv":
-        return {**shared, "conv_iter": cfg.conv_iter, "conv_prior": cfg.conv_prior}
-    return {**shared, "l1_iter": cfg.l1_iter, "l1_delta": cfg.l1_delta}
+    raise ValueError(f"normal_rotation must be one of {NORMAL_ROTATIONS}, got {rule!r}")
 
 
 def _as_lighting(lighting: Any, batch: int) -> Tensor:
@@ -591,7 +798,7 @@ def _check_focal(focal: Any) -> Optional[float]:
     return None if focal is None else _positive_focal(focal)
 
 
-def _check_principal_point(principal_point: Any, focal: Optional[float]) -> Optional[tuple]:
+def _check_principal_point(principal_point: Any, focal: Optional[float], warn: bool = True) -> Optional[tuple]:
     if principal_point is None:
         return None
     try:
@@ -600,27 +807,27 @@ def _check_principal_point(principal_point: Any, focal: Optional[float]) -> Opti
         values = ()
     if len(values) != 2 or not all(math.isfinite(v) for v in values):
         raise ValueError(f"principal_point must be two finite numbers (cx, cy) in pixels, got {principal_point!r}")
-    if focal is None:
+    if focal is None and warn:
         warnings.warn("principal_point is ignored without a focal length (the camera is orthographic)", stacklevel=3)
     return values
 
 
 def _check_forest_config(cfg: PipelineConfig) -> None:
-    """Validate the forest's, its cache's and the rounds' options before any database is loaded."""
-    rounds = cfg.reflectance_map.refine_rounds
-    if not (isinstance(rounds, int) and rounds >= 0):
-        raise ValueError(f"reflectance_map.refine_rounds must be an integer >= 0, got {rounds!r}")
-    if cfg.camera.normal_rotation not in ("centroid", "pixel"):
-        raise ValueError(f"camera.normal_rotation must be 'centroid' or 'pixel', got {cfg.camera.normal_rotation!r}")
-    if cfg.training.cache_forests not in CACHE_POLICIES:
-        raise ValueError(f"training.cache_forests must be one of {CACHE_POLICIES}, got {cfg.training.cache_forests!r}")
-    if not (isinstance(cfg.training.max_cached_forests, int) and cfg.training.max_cached_forests >= 1):
-        raise ValueError(f"training.max_cached_forests must be an integer >= 1, got {cfg.training.max_cached_forests!r}")
+    """Build the unfitted forest from ``cfg.forest`` and check its options against the feature count."""
+    from hydra.errors import InstantiationException
+
     n_features = 3 * cfg.features.rgb + 3 * cfg.features.silhouette + N_TEXTON_FILTERS * cfg.features.texton
-    try:
-        VMFForest(**_forest_params(cfg))._validate_params(max(n_features, 1))
-    except ValueError as err:
-        raise ValueError(f"forest.{err}") from None
+    with _named("forest"):
+        try:
+            forest = _forest(cfg.forest)
+        except InstantiationException as err:
+            cause = err.__cause__
+            if isinstance(cause, ValueError):
+                raise cause from None
+            reason = " ".join(str(err).split(", set env var HYDRA_FULL_ERROR")[0].split())
+            raise ValueError(f"_target_={cfg.forest._target_!r} could not be built: {reason}") from None
+        if hasattr(forest, "_validate_params"):
+            forest._validate_params(max(n_features, 1))
 
 
 def _warn_outside_assumptions(image: Tensor, mask: Tensor, principal_point: Optional[tuple]) -> None:

@@ -47,7 +47,7 @@ from ._checks import check_finite, check_mask, check_same_size, check_shape
 from .integrability import _dx, _dy, _edge_masks, field_normals, integrate_normals
 from .lighting import render_sh
 from .natural_lighting import LightingPrior, lighting_prior_energy, load_lighting_prior
-from .silhouette import coarse_normals
+from .silhouette import SilhouetteConfig, coarse_normals
 
 __all__ = ["RefineConfig", "check_refine_config", "photometric_residual", "RefinementLoss", "Refinement", "refinement_loss", "refine_shape_and_lighting",
            "PhotometricRefiner", "rim_pixels"]
@@ -250,6 +250,7 @@ def refine_shape_and_lighting(
     principal_point: Optional[Sequence[float]] = None,
     config: Optional[RefineConfig] = None,
     lighting_prior: Optional[LightingPrior] = None,
+    silhouette: Optional[SilhouetteConfig] = None,
 ) -> Refinement:
     """Fit normals (per pixel, or of an integrable surface) and optionally the lighting to an image.
 
@@ -266,6 +267,8 @@ def refine_shape_and_lighting(
         principal_point: ``(cx, cy)`` in pixels; default image centre.
         config: :class:`RefineConfig`.
         lighting_prior: natural-lighting prior (``None``: the packaged one).
+        silhouette: options of the silhouette normals the rim is pulled towards; default
+            :class:`~sfs_torch.silhouette.SilhouetteConfig`.
 
     Returns:
         :class:`Refinement`. The optimisation itself is not differentiated through.
@@ -296,7 +299,7 @@ def refine_shape_and_lighting(
     mf = mask.to(image.dtype)
     mean_conf = (confidence * mf).flatten(1).sum(1) / mf.flatten(1).sum(1)
     weights = (confidence / mean_conf.clamp_min(1e-12)[:, None, None, None]).clamp_max(MAX_CONFIDENCE_WEIGHT) * mf
-    rim_normals = coarse_normals(mask, focal, principal_point).to(image.dtype) * rim_pixels(mask)
+    rim_normals = coarse_normals(mask, focal, principal_point, silhouette).to(image.dtype) * rim_pixels(mask)
     height, width = image.shape[-2:]
     centre = (width / 2.0, height / 2.0) if principal_point is None else tuple(float(c) for c in principal_point)
     # the optimised variable: per-pixel normals (B, 3, H, W), or the surface field (B, H, W)
@@ -428,10 +431,11 @@ class PhotometricRefiner(nn.Module):
     """Module form of :func:`refine_shape_and_lighting` with a fixed camera and config."""
 
     def __init__(self, config: Optional[RefineConfig] = None, focal: Optional[float] = None,
-                 principal_point: Optional[Sequence[float]] = None):
+                 principal_point: Optional[Sequence[float]] = None, silhouette: Optional[SilhouetteConfig] = None):
         super().__init__()
         self.config = config or RefineConfig()
         self.focal, self.principal_point = focal, principal_point
+        self.silhouette = silhouette
         prior = load_lighting_prior()
         self.register_buffer("prior_mean", prior.mean)
         self.register_buffer("prior_precision", prior.precision)
@@ -441,5 +445,5 @@ class PhotometricRefiner(nn.Module):
         return refine_shape_and_lighting(
             image, mask, normals, lighting, confidence=confidence, focal=self.focal,
             principal_point=self.principal_point, config=self.config,
-            lighting_prior=LightingPrior(self.prior_mean, self.prior_precision),
+            lighting_prior=LightingPrior(self.prior_mean, self.prior_precision), silhouette=self.silhouette,
         )

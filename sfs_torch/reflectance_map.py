@@ -25,7 +25,7 @@ from torch import Tensor, nn
 from ._checks import check_finite, check_mask, check_same_size, check_shape
 from .camera import _positive_focal, centroid_rotation
 from .lighting import fit_sh, fit_sh_vectors, rotate_sh, sh_basis_vectors
-from .silhouette import silhouette_distances
+from .silhouette import SilhouetteConfig, silhouette_distances
 
 __all__ = [
     "ReflectanceMapConfig",
@@ -57,17 +57,10 @@ class ReflectanceMapConfig:
             bounds the cost of the k-NN search on large images.
         match_statistics: match the mean and standard deviation of the estimate's
             shading to the image per channel (the paper's final step).
-        refine_rounds: used by :func:`sfs_torch.estimate` when the lighting is
-            estimated: this many times, the lighting is refitted to the image from the
-            forest's predicted normals (:func:`refit_lighting`) and a new forest is
-            trained for it. 0 is the paper's method; each round costs one more forest.
-        valid_refit: constrain those refits to a physically valid lighting
-            (:func:`refit_lighting`'s ``valid``), and start them from the lighting nearest
-            this estimate that is one (it can shade parts of the hemisphere negative).
-        keep_prior: used by :func:`sfs_torch.estimate`: return the silhouette prior
-            (Eq. 10's coarse normals with their own refitted lighting, or with the given
-            lighting) instead of the forest's normals when it explains the image better
-            (:func:`sfs_torch.refine.photometric_residual`).
+
+    How :func:`sfs_torch.estimate` refits the lighting afterwards (``refine_rounds``,
+    ``valid_refit``, ``keep_prior``) is the pipeline's, in
+    :class:`sfs_torch.pipeline.PipelineConfig`.
     """
 
     profile: str = "sphere"
@@ -76,9 +69,6 @@ class ReflectanceMapConfig:
     min_k: int = 4
     max_pixels: int = 20000
     match_statistics: bool = True
-    refine_rounds: int = 1
-    valid_refit: bool = True
-    keep_prior: bool = True
 
 
 def hemisphere_directions(n: int, *, device=None, dtype=torch.float32) -> Tensor:
@@ -94,12 +84,13 @@ def hemisphere_directions(n: int, *, device=None, dtype=torch.float32) -> Tensor
     return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1).to(dtype)
 
 
-def sphere_mapping(mask: Tensor, profile: str = "sphere") -> Tensor:
+def sphere_mapping(mask: Tensor, profile: str = "sphere", silhouette: Optional[SilhouetteConfig] = None) -> Tensor:
     """Map each object pixel to the sphere by its silhouette features (Eq. 8 / Eq. 10).
 
     Args:
         mask: :math:`(B, 1, H, W)` bool.
         profile: ``"sphere"`` (Eq. 10) or ``"linear"`` (Eq. 8).
+        silhouette: options of the silhouette features; default :class:`SilhouetteConfig`.
 
     Returns:
         :math:`(B, 3, H, W)` unit directions in the orthographic camera frame, 0 outside.
@@ -107,7 +98,7 @@ def sphere_mapping(mask: Tensor, profile: str = "sphere") -> Tensor:
     if profile not in PROFILES:
         raise ValueError(f"profile must be one of {PROFILES}, got {profile!r}")
     mask = check_mask(mask)
-    dist = silhouette_distances(mask)
+    dist = silhouette_distances(mask, silhouette)
     d_rel = dist.d_rel.clamp(0, 1)
     nz = torch.sqrt(1 - (1 - d_rel) ** 2) if profile == "sphere" else d_rel
     in_plane = torch.sqrt((1 - nz * nz).clamp_min(0))
@@ -132,6 +123,7 @@ def estimate_lighting(
     focal: Optional[float] = None,
     principal_point: Optional[Sequence[float]] = None,
     config: Optional[ReflectanceMapConfig] = None,
+    silhouette: Optional[SilhouetteConfig] = None,
 ) -> Tensor:
     """Estimate SH lighting from one image and its silhouette (paper Sec. 7; Sec. 8 with ``focal``).
 
@@ -142,6 +134,8 @@ def estimate_lighting(
             for the object's centroid (Sec. 8).
         principal_point: ``(cx, cy)``; default image centre.
         config: options, see :class:`ReflectanceMapConfig`.
+        silhouette: options of the silhouette features the pixels are mapped by;
+            default :class:`~sfs_torch.silhouette.SilhouetteConfig`.
 
     Returns:
         :math:`(B, 3, 9)` SH lighting in the camera frame.
@@ -151,7 +145,7 @@ def estimate_lighting(
     mask = check_mask(mask)
     check_same_size(image, "image", mask, "mask")
     check_finite(image, "image")
-    dirs_map = sphere_mapping(mask, cfg.profile).to(image.dtype)
+    dirs_map = sphere_mapping(mask, cfg.profile, silhouette).to(image.dtype)
     hemisphere = hemisphere_directions(cfg.n_directions, device=image.device, dtype=image.dtype)
     lightings = []
     # One object at a time: object sizes differ, so k and the pixel sets do too.
@@ -220,12 +214,8 @@ def _match_statistics(sh: Tensor, pixel_dirs: Tensor, pixel_colours: Tensor) -> 
 class LightingEstimator(nn.Module):
     """Lighting from one image and its silhouette (module form of :func:`estimate_lighting`).
 
-    Stores the options: a :class:`ReflectanceMapConfig` and, like
-    :class:`sfs_torch.integrability.Integrator`, the camera. Of the config only the
-    fields that :func:`estimate_lighting` reads matter here (``profile``,
-    ``n_directions``, ``knn_fraction``, ``min_k``, ``max_pixels``,
-    ``match_statistics``); ``refine_rounds``, ``valid_refit`` and ``keep_prior`` are
-    read by :func:`sfs_torch.estimate` only.
+    Stores the options: a :class:`ReflectanceMapConfig`, the silhouette features' options
+    and, like :class:`sfs_torch.integrability.Integrator`, the camera.
 
     Differentiable in ``image``: which pixels are averaged for a hemisphere direction
     (the k nearest, Eq. 9) depends on the mask alone, and the rest is linear least
@@ -237,6 +227,7 @@ class LightingEstimator(nn.Module):
         focal: focal length in pixels (Sec. 8: the estimate is rotated by the rotation of
             the object's centroid); ``None`` for an orthographic camera.
         principal_point: ``(cx, cy)`` in pixels; default the image centre.
+        silhouette: a :class:`~sfs_torch.silhouette.SilhouetteConfig`; ``None`` for the defaults.
 
     ``forward(image, mask)``: image :math:`(B, 3, H, W)` linear RGB, mask
     :math:`(B, 1, H, W)` bool; returns :math:`(B, 3, 9)` SH lighting in the camera frame.
@@ -248,6 +239,7 @@ class LightingEstimator(nn.Module):
         *,
         focal: Optional[float] = None,
         principal_point: Optional[Sequence[float]] = None,
+        silhouette: Optional[SilhouetteConfig] = None,
     ):
         super().__init__()
         if config is None:
@@ -264,10 +256,12 @@ class LightingEstimator(nn.Module):
         self.config = config
         self.focal = None if focal is None else _positive_focal(focal)
         self.principal_point = principal_point
+        self.silhouette = silhouette
 
     def forward(self, image: Tensor, mask: Tensor) -> Tensor:
         return estimate_lighting(
-            image, mask, focal=self.focal, principal_point=self.principal_point, config=self.config
+            image, mask, focal=self.focal, principal_point=self.principal_point, config=self.config,
+            silhouette=self.silhouette,
         )
 
     def extra_repr(self) -> str:

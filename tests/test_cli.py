@@ -108,7 +108,7 @@ class TestCLI:
         sweep = tmp_path / "sweep"
         args = ["-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", *TINY, "image=obj.png", "mask=obj_mask.png",
                 # the forest's normals, not the silhouette prior a sphere keeps, so the seeds show
-                "forest.seed=0,1", "reflectance_map.keep_prior=false", f"out={sweep}"]
+                "forest.seed=0,1", "keep_prior=false", f"out={sweep}"]
         result = run_cli(args, tmp_path)
         assert result.returncode == 0, result.stderr
         assert "Joblib.Parallel(n_jobs=2" in result.stdout + result.stderr  # the joblib launcher ran the jobs
@@ -175,6 +175,56 @@ class TestCLI:
             assert not (out / name).exists(), name
         assert (out / "normals.npy").is_file()
         assert not list(out.glob(".sfs-torch-partial-*"))
+
+
+class TestConfigCheckedAtEntry:
+    """A bad pipeline option fails in one line naming its key, before the demo scene, the input
+    files, the renderer or any item of a batch is touched (the database above all)."""
+
+    CASES = [
+        (["refine_rounds=-1"], "refine_rounds must be an integer >= 0, got -1"),
+        (["normal_rotation=pxl"], "normal_rotation must be one of ('centroid', 'pixel'), got 'pxl'"),
+        (["integrate.method=l3"], "integrate.method must be one of"),
+        (["forest.n_trees=0"], "forest.n_trees must be an int >= 1, got 0"),
+        (["silhouette.depth_layer_ratio=0.5"], "silhouette.depth_layer_ratio must be > 1"),
+    ]
+
+    @pytest.fixture()
+    def no_work(self, monkeypatch):
+        import sfs_torch.cli as cli
+        import sfs_torch.pipeline as pipeline
+
+        def never(*args, **kwargs):
+            raise AssertionError("work started before the config was checked")
+
+        for module, name in ((cli, "_demo_inputs"), (cli, "evaluation_shapes"), (cli, "estimate"), (cli, "_read_item"),
+                             (cli, "gl_context"), (cli.io, "read_image_and_mask"), (pipeline, "load_database")):
+            monkeypatch.setattr(module, name, never)
+        return cli
+
+    @pytest.mark.parametrize("mode", ["demo", "image", "batch"])
+    @pytest.mark.parametrize("overrides, message", CASES, ids=[c[0][0] for c in CASES])
+    def test_run_and_batch(self, tmp_path, no_work, mode, overrides, message):
+        photos = tmp_path / "photos"
+        (photos / "item").mkdir(parents=True)
+        extra = {"demo": [], "image": ["image=obj.png", "integrate=l2"], "batch": [f"input_dir={photos}"]}[mode]
+        cfg = compose_batch([*extra, *overrides, f"out={tmp_path / 'r'}"])
+        with pytest.raises(ValueError) as info:
+            (no_work.run_batch if mode == "batch" else no_work.run)(cfg)
+        assert message in str(info.value)
+        assert not (tmp_path / "r").exists()
+
+    def test_one_clear_line(self, tmp_path):
+        result = run_cli([*TINY, "normal_rotation=pxl", "out=x"], tmp_path)
+        assert result.returncode == 2
+        assert "normal_rotation must be one of ('centroid', 'pixel'), got 'pxl'" in result.stderr + result.stdout
+        assert "Traceback" not in result.stderr
+
+    def test_a_moved_key_says_where_it_went(self, tmp_path):
+        result = run_cli([*TINY, "reflectance_map.refine_rounds=0", "out=x"], tmp_path)
+        assert result.returncode == 2
+        assert "reflectance_map.refine_rounds is now refine_rounds" in result.stderr
+        assert "Traceback" not in result.stderr and not (tmp_path / "x").exists()
 
 
 class TestMeshFormats:
@@ -309,7 +359,7 @@ class TestBatch:
         # the angular error against the ground truth normals, only where there are some
         numbers = json.loads((out / "a_sphere" / "metrics.json").read_text())
         assert float(rows[0]["median_error_deg"]) == pytest.approx(numbers["median error (deg)"], abs=1e-4)
-        # no worse than the silhouette prior, which a sphere may keep (reflectance_map.keep_prior)
+        # no worse than the silhouette prior, which a sphere may keep (keep_prior)
         assert 0 <= numbers["median error (deg)"] <= numbers["silhouette-only median (deg)"] + 1e-3
         assert rows[1]["median_error_deg"] == "" and rows[2]["median_error_deg"] == ""
         assert "median error (deg)" not in json.loads((out / "b_sphere" / "metrics.json").read_text())

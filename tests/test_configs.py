@@ -1,42 +1,130 @@
-from dataclasses import asdict
+from dataclasses import asdict, is_dataclass, replace
 from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_module
+from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-import sfs_torch.cli  # noqa: F401  (registers the config schema)
-from sfs_torch.pipeline import PipelineConfig
+from sfs_torch.camera import CameraConfig
+from sfs_torch.cli import STAGE_GROUPS, AppConfig, _pipeline_config  # registers the schema and the stage groups
+from sfs_torch.forest import ForestConfig, VMFForest
+from sfs_torch.geometry_db import DatabaseConfig
+from sfs_torch.integrability import IntegrabilityConfig, Integrator
+from sfs_torch.pipeline import MOVED_OPTIONS, FeatureConfig, PipelineConfig, TrainingConfig
+from sfs_torch.reflectance_map import ReflectanceMapConfig
+from sfs_torch.refine import RefineConfig
+from sfs_torch.silhouette import SilhouetteConfig
+from sfs_torch.texton import TextonConfig
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 # dataset/ and search/ belong to the sfs-torch-eval app (conf/eval.yaml), composed in
 # tests/test_evaluate.py and tests/test_sweeps.py
-GROUPS = sorted(p.name for p in CONF.iterdir()
-                if p.is_dir() and p.name not in {"experiment", "dataset", "search", "__pycache__"})
+APP_ONLY = {"experiment", "dataset", "search", "__pycache__"}
+YAML_OPTIONS = {(p.parent.name, p.stem) for p in CONF.glob("*/*.yaml") if p.parent.name not in APP_ONLY}
+OPTIONS = sorted(YAML_OPTIONS | {(group, "default") for group in STAGE_GROUPS})
+
+# what every group option composes to: the whole stage config, every value
+EXPECTED = {
+    ("database", "default"): DatabaseConfig(),
+    ("database", "blobby"): DatabaseConfig(collection="blobby"),
+    ("silhouette", "default"): SilhouetteConfig(),
+    ("texton", "default"): TextonConfig(),
+    ("reflectance_map", "default"): ReflectanceMapConfig(),
+    ("training", "default"): TrainingConfig(),
+    ("forest", "default"): ForestConfig(),
+    ("features", "all"): FeatureConfig(rgb=True, silhouette=True, texton=True),
+    ("features", "rgb"): FeatureConfig(rgb=True, silhouette=False, texton=False),
+    ("features", "rgb_silh"): FeatureConfig(rgb=True, silhouette=True, texton=False),
+    ("features", "rgb_tex"): FeatureConfig(rgb=True, silhouette=False, texton=True),
+    ("integrate", "none"): IntegrabilityConfig(method=None),
+    ("integrate", "l2"): IntegrabilityConfig(method="l2"),
+    ("integrate", "l1"): IntegrabilityConfig(method="l1"),
+    ("integrate", "conv"): IntegrabilityConfig(method="conv"),
+    ("camera", "ortho"): CameraConfig(focal=None, principal_point=None),
+    ("camera", "persp"): CameraConfig(focal=1000.0, principal_point=None),
+    ("refine", "never"): RefineConfig(when="never"),
+    ("refine", "known"): RefineConfig(when="known"),
+    ("refine", "always"): RefineConfig(when="always"),
+}
 
 
-def compose_app(overrides=()):
+def compose_app(overrides=(), hydra_config=False):
     with initialize_config_module(config_module="sfs_torch.conf", version_base="1.3"):
-        return compose(config_name="config", overrides=list(overrides))
+        return compose(config_name="config", overrides=list(overrides), return_hydra_config=hydra_config)
 
 
 class TestConfigs:
     def test_defaults_equal_the_dataclasses(self):
         cfg = compose_app()
-        defaults = asdict(PipelineConfig())
-        for group in defaults:
-            assert OmegaConf.to_container(cfg[group]) == defaults[group], group
+        assert OmegaConf.to_object(cfg) == AppConfig()
+        assert _pipeline_config(cfg) == PipelineConfig()
 
-    @pytest.mark.parametrize("group", GROUPS)
-    def test_every_option_composes(self, group):
-        for option in sorted((CONF / group).glob("*.yaml")):
-            cfg = compose_app([f"{group}={option.stem}"])
-            OmegaConf.to_object(cfg)  # validates against the schema
+    def test_every_stage_is_a_group_with_a_default(self):
+        cfg = compose_app(hydra_config=True)
+        choices = cfg.hydra.runtime.choices
+        stages = [name for name in PipelineConfig.__dataclass_fields__ if is_dataclass(getattr(PipelineConfig(), name))]
+        assert set(stages) == {"database", "silhouette", "texton", "reflectance_map", "features", "training", "forest",
+                               "integrate", "camera", "refine"}
+        assert {stage: choices[stage] for stage in stages} == {
+            "database": "default", "silhouette": "default", "texton": "default", "reflectance_map": "default",
+            "features": "all", "training": "default", "forest": "default", "integrate": "none", "camera": "ortho",
+            "refine": "known",
+        }
+
+    def test_every_option_is_expected(self):
+        # a new option file (or stage group) needs its values listed in EXPECTED
+        assert sorted(EXPECTED) == OPTIONS
+
+    def test_the_comment_only_defaults_are_gone(self):
+        # one truth: the stage groups' default is the config class, not a YAML file beside it
+        assert not [p for p in CONF.glob("*/default.yaml")]
+
+    @pytest.mark.parametrize("group, option", OPTIONS, ids=[f"{g}={o}" for g, o in OPTIONS])
+    def test_every_option_composes_to_its_values(self, group, option):
+        cfg = compose_app([f"{group}={option}"])
+        expected = EXPECTED[(group, option)]
+        assert OmegaConf.to_container(cfg[group]) == asdict(expected)
+        # the option changes its group and nothing else; the pipeline receives it as composed
+        assert _pipeline_config(cfg) == replace(PipelineConfig(), **{group: expected})
+
+    def test_pipeline_options_are_top_level_keys(self):
+        overrides = ["refine_rounds=0", "valid_refit=false", "keep_prior=false", "normal_rotation=pixel",
+                     "conv_samples_per_tree=3"]
+        pipeline = _pipeline_config(compose_app(overrides))
+        assert (pipeline.refine_rounds, pipeline.valid_refit, pipeline.keep_prior, pipeline.normal_rotation,
+                pipeline.conv_samples_per_tree) == (0, False, False, "pixel", 3)
+        assert replace(pipeline, refine_rounds=1, valid_refit=True, keep_prior=True, normal_rotation="centroid",
+                       conv_samples_per_tree=1) == PipelineConfig()
+
+    def test_values_inside_a_group(self):
+        cfg = compose_app(["silhouette.prune_angle=45", "silhouette.gradient_sigma=0", "forest.n_trees=3",
+                           "features=rgb", "camera=persp", "camera.focal=300"])
+        pipeline = _pipeline_config(cfg)
+        assert pipeline.silhouette == SilhouetteConfig(prune_angle=45.0, gradient_sigma=0.0)
+        assert pipeline.forest == ForestConfig(n_trees=3) and pipeline.camera == CameraConfig(focal=300.0)
+
+    @pytest.mark.parametrize("old", sorted(MOVED_OPTIONS))
+    def test_moved_keys_are_gone_from_the_stages(self, old):
+        with pytest.raises(ConfigCompositionException, match=old.split(".")[1]):
+            compose_app([f"{old}=1"])
+        assert MOVED_OPTIONS[old] in PipelineConfig.__dataclass_fields__
+
+    def test_targets_instantiate_the_composed_stage(self):
+        cfg = compose_app(["forest.n_trees=3", "forest.max_depth=5", "integrate=l1", "integrate.l1_iter=4"])
+        forest = instantiate(cfg.forest)
+        assert isinstance(forest, VMFForest) and (forest.n_trees, forest.max_depth) == (3, 5)
+        assert forest.min_samples_leaf == ForestConfig().min_samples_leaf
+        integrator = instantiate(cfg.integrate)
+        assert isinstance(integrator, Integrator) and (integrator.method, integrator.l1_iter) == ("l1", 4)
+        with pytest.raises(Exception, match="method=None means no integration"):
+            instantiate(compose_app().integrate)  # integrate=none: the pipeline integrates nothing
 
     def test_experiment_composes(self):
-        cfg = compose_app(["+experiment=ablation"])
+        cfg = compose_app(["+experiment=ablation"], hydra_config=True)
         assert cfg.integrate.method is None
+        assert cfg.hydra.sweeper.params.features == "rgb,rgb_silh,rgb_tex,all"
 
     def test_typo_is_rejected(self):
         with pytest.raises(Exception, match="n_treez"):

@@ -1,13 +1,17 @@
+from dataclasses import replace
+
 import pytest
 import torch
 from test_pipeline import TINY, scene  # noqa: F401  (the shared sphere fixture)
 
 import sfs_torch
+from sfs_torch import geometry_db, pipeline
+from sfs_torch.geometry_db import DatabaseConfig, GeometryDatabase
 from sfs_torch.model import ShapeFromShading
 from sfs_torch.pipeline import Estimate, PipelineConfig, estimate, resolve_config
 
 # TINY without the stages that cost seconds on a CPU (photometric refinement, refit round)
-FAST = dict(TINY, refine={"when": "never"}, reflectance_map={"refine_rounds": 0, "keep_prior": False})
+FAST = dict(TINY, refine={"when": "never"}, refine_rounds=0, keep_prior=False)
 
 
 @pytest.fixture(scope="module")
@@ -48,9 +52,11 @@ class TestShapeFromShading:
         assert "database='blobby'" in repr(model)
         assert sfs_torch.ShapeFromShading is ShapeFromShading
 
-    def test_holds_no_tensors(self):
-        # the options are the whole state: .to() has nothing to move, the input's device rules
-        model = ShapeFromShading(TINY)
+    def test_holds_no_parameters(self):
+        # no parameters or buffers, even with the database held: .to() has nothing to move,
+        # the input's device rules, and state_dict() stays empty
+        model = ShapeFromShading(TINY, progress=False)
+        model.database()
         assert model.to("cpu") is model and model.to(torch.float64) is model
         assert list(model.parameters()) == [] and list(model.buffers()) == [] and model.state_dict() == {}
 
@@ -116,3 +122,71 @@ class TestShapeFromShading:
                     assert bool(torch.isfinite(value.float()).all()), name
             norms = est.normals.norm(dim=0)[mask[0]]
             torch.testing.assert_close(norms, torch.ones_like(norms), atol=1e-4, rtol=0)
+
+
+@pytest.fixture()
+def load_calls(monkeypatch):
+    """Configs that the geometry database was loaded for; estimate() must not load it itself."""
+    calls = []
+    load = geometry_db.load_database
+
+    def counting(cfg, **kwargs):
+        calls.append(replace(cfg))
+        return load(cfg, **kwargs)
+
+    monkeypatch.setattr(geometry_db, "load_database", counting)
+    monkeypatch.setattr(pipeline, "load_database", lambda *a, **k: pytest.fail("estimate() loaded the database"))
+    return calls
+
+
+class TestDatabaseHeldOnce:
+    """The module loads the example-geometry database once and passes it to estimate() (needs estimate(database=))."""
+
+    def test_loaded_once(self, scene, load_calls):
+        _, mask, sh, image = scene
+        model = ShapeFromShading(FAST, progress=False)
+        first = model(image, mask, lighting=sh)
+        second = model(image, mask, lighting=sh)
+        model(image.numpy().transpose(1, 2, 0), mask)  # a numpy image: the CPU copy too
+        assert load_calls == [DatabaseConfig(**TINY["database"])]
+        assert_same_estimate(first, second)
+        assert model.database() is model.database("cpu") is model.database(torch.device("cpu"))
+
+    def test_same_as_estimate(self, scene, load_calls):
+        # the held database gives what estimate() gives when it loads the file itself
+        _, mask, sh, image = scene
+        model = ShapeFromShading(FAST, progress=False)
+        got = model(image, mask, lighting=sh)
+        expected = estimate(image, mask, lighting=sh, config=FAST, progress=False,
+                            database=geometry_db.load_database(model.config.database, progress=False))
+        assert_same_estimate(got, expected)
+
+    def test_config_change_and_clear(self, load_calls):
+        model = ShapeFromShading(TINY, progress=False)
+        db = model.database()
+        assert isinstance(db, GeometryDatabase) and model.database() is db and len(load_calls) == 1
+        model.config.database.seed = 1  # another database: the held one is dropped
+        assert model.database() is not db and load_calls[-1].seed == 1 and len(load_calls) == 2
+        model.clear_database()
+        model.database()
+        assert len(load_calls) == 3
+
+    def test_on_the_input_device(self, device, load_calls):
+        model = ShapeFromShading(TINY, progress=False)
+        db = model.database(device)
+        fields = (db.normals, db.masks, db.silhouette, db.shape_id, db.view_id)
+        assert all(t.device.type == device.type for t in fields)
+        assert model.database(device) is db and len(load_calls) == 1
+        torch.testing.assert_close(db.normals.cpu(), model.database().normals, rtol=0, atol=0)
+
+    def test_estimate_checks_the_database(self, scene):
+        _, mask, sh, image = scene
+        db = geometry_db.load_database(DatabaseConfig(**TINY["database"]), progress=False)
+        smaller = replace(db, normals=db.normals[:, :, 1:-1, 1:-1], masks=db.masks[:, :, 1:-1, 1:-1])
+        with pytest.raises(ValueError, match="database.normals"):
+            estimate(image, mask, lighting=sh, config=FAST, progress=False, database=smaller)
+        with pytest.raises(ValueError, match="n_shapes"):
+            estimate(image, mask, lighting=sh, config=dict(FAST, database=dict(TINY["database"], n_shapes=3)),
+                     progress=False, database=db)
+        with pytest.raises(TypeError, match="GeometryDatabase"):
+            estimate(image, mask, lighting=sh, config=FAST, progress=False, database=db.normals)

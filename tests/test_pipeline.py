@@ -66,14 +66,14 @@ class TestEstimate:
     def test_perspective(self, scene):
         _, mask, sh, image = scene
         # the rotation rule of the forest's normals, before any refinement or prior check
-        forest_only = dict(TINY, refine={"when": "never"}, reflectance_map={"keep_prior": False})
+        forest_only = dict(TINY, refine={"when": "never"}, keep_prior=False)
         est = sfs_torch.estimate(image, mask, focal=60.0, lighting=sh, config=forest_only, progress=False)
         norms = est.normals.norm(dim=0)[mask[0]]
         assert torch.allclose(norms, torch.ones_like(norms), atol=1e-5)
         # centred object: the centroid rotation is the identity, the per-pixel one is not
         ortho = sfs_torch.estimate(image, mask, lighting=sh, config=forest_only, progress=False)
         assert torch.allclose(est.normals, ortho.normals, atol=1e-6)
-        per_pixel = dict(forest_only, camera={"normal_rotation": "pixel"})
+        per_pixel = dict(forest_only, normal_rotation="pixel")
         tilted = sfs_torch.estimate(image, mask, focal=60.0, lighting=sh, config=per_pixel, progress=False)
         assert not torch.allclose(tilted.normals, ortho.normals, atol=1e-3)
 
@@ -91,7 +91,7 @@ class TestEstimate:
         image = (render_sh(normals[None], sh[None])[0] * mask).clamp(0, 1)
         errors = {}
         for rule in ("centroid", "pixel"):
-            config = dict(TINY, camera={"normal_rotation": rule}, reflectance_map={"keep_prior": False})
+            config = dict(TINY, normal_rotation=rule, keep_prior=False)
             est = sfs_torch.estimate(
                 image, mask, focal=50.0, principal_point=(24.0, 24.0), lighting=sh, config=config, progress=False
             )
@@ -183,11 +183,11 @@ class TestJitterOnlyForEstimatedLighting:
 
 class TestLightingRefinement:
     # the refit rounds alone: on this sphere the prior check would replace their result
-    ROUNDS = dict(TINY, reflectance_map={"keep_prior": False})
+    ROUNDS = dict(TINY, keep_prior=False)
 
     def test_refined_lighting_is_fitted_to_the_unrefined_normals(self, scene):
         _, mask, _, image = scene
-        plain = sfs_torch.estimate(image, mask, config=dict(TINY, reflectance_map={"refine_rounds": 0, "keep_prior": False}),
+        plain = sfs_torch.estimate(image, mask, config=dict(TINY, refine_rounds=0, keep_prior=False),
                                    progress=False)
         refined = sfs_torch.estimate(image, mask, config=self.ROUNDS, progress=False)
         expected = refit_lighting(image[None], mask[None], plain.normals[None])[0]
@@ -196,7 +196,7 @@ class TestLightingRefinement:
 
     def test_a_refit_that_explains_the_image_worse_is_dropped(self, scene, monkeypatch):
         _, mask, _, image = scene
-        plain = sfs_torch.estimate(image, mask, config=dict(TINY, reflectance_map={"refine_rounds": 0, "keep_prior": False}),
+        plain = sfs_torch.estimate(image, mask, config=dict(TINY, refine_rounds=0, keep_prior=False),
                                    progress=False)
         # a refit gone wrong: three times too bright
         monkeypatch.setattr("sfs_torch.pipeline.refit_lighting", lambda im, m, n, valid: 3 * refit_lighting(im, m, n))
@@ -206,14 +206,14 @@ class TestLightingRefinement:
 
     def test_given_lighting_is_not_refined(self, scene):
         _, mask, sh, image = scene
-        config = dict(TINY, reflectance_map={"refine_rounds": 2})
+        config = dict(TINY, refine_rounds=2)
         est = sfs_torch.estimate(image, mask, lighting=sh, config=config, progress=False)
         assert torch.equal(est.lighting, sh)
 
     def test_negative_rounds_are_rejected(self, scene):
         _, mask, _, image = scene
         with pytest.raises(ValueError, match="refine_rounds"):
-            sfs_torch.estimate(image, mask, config=dict(TINY, reflectance_map={"refine_rounds": -1}), progress=False)
+            sfs_torch.estimate(image, mask, config=dict(TINY, refine_rounds=-1), progress=False)
 
 
 class TestKeepPrior:
@@ -221,8 +221,8 @@ class TestKeepPrior:
         # Eq. 10 is exact for a sphere: its coarse normals with their own lighting explain the
         # image better than any forest, and the call returns them
         normals, mask, sh, image = scene
-        on = sfs_torch.estimate(image, mask, config=dict(TINY, reflectance_map={"keep_prior": True}), progress=False)
-        off = sfs_torch.estimate(image, mask, config=dict(TINY, reflectance_map={"keep_prior": False}), progress=False)
+        on = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=True), progress=False)
+        off = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False), progress=False)
         error_on = float(normal_metrics(on.normals[None], normals[None], mask[None]).median[0])
         error_off = float(normal_metrics(off.normals[None], normals[None], mask[None]).median[0])
         assert error_on < 1.5 < error_off
@@ -235,7 +235,7 @@ class TestKeepPrior:
     def test_a_given_lighting_is_kept_with_the_prior(self, scene):
         normals, mask, sh, image = scene
         est = sfs_torch.estimate(image, mask, lighting=sh, progress=False,
-                                 config=dict(TINY, reflectance_map={"keep_prior": True}, refine={"when": "never"}))
+                                 config=dict(TINY, keep_prior=True, refine={"when": "never"}))
         assert torch.equal(est.lighting, sh)
 
 
@@ -295,20 +295,12 @@ class TestForestCache:
         # an estimated lighting is new for nearly every image: its forests are not kept by default
         monkeypatch.setenv("SFS_TORCH_CACHE", str(tmp_path))
         _, mask, sh, image = scene
-        config = dict(TINY, training={"cache_forests": policy}, reflectance_map={"refine_rounds": 1})
+        config = dict(TINY, training={"cache_forests": policy}, refine_rounds=1)
         forests = tmp_path / "forests"
         sfs_torch.estimate(image, mask, lighting=sh, config=config, progress=False)
         assert len(list(forests.glob("*.safetensors"))) == given
         sfs_torch.estimate(image, mask, config=config, progress=False)
         assert len(list(forests.glob("*.safetensors"))) == given + estimated
-
-    @pytest.mark.parametrize("config", [{"reflectance_map": {"refine_rounds": -1}},
-                                        {"camera": {"normal_rotation": "pxl"}}])
-    def test_round_and_rotation_options_fail_before_any_work(self, scene, monkeypatch, config):
-        _, mask, _, image = scene
-        monkeypatch.setattr(pipeline, "load_database", lambda *a, **k: pytest.fail("validated too late"))
-        with pytest.raises(ValueError, match="refine_rounds|normal_rotation"):
-            sfs_torch.estimate(image, mask, focal=50.0, config=dict(TINY, **config), progress=False)
 
     def test_unknown_policy_fails_before_training(self, scene, monkeypatch):
         _, mask, sh, image = scene
@@ -327,6 +319,133 @@ class TestConfig:
     def test_unknown_key_is_rejected(self):
         with pytest.raises(ValueError, match="n_treez"):
             resolve_config({"forest": {"n_treez": 3}})
+
+
+# every option is checked when the config is resolved, before the lighting estimate and the
+# database: each bad value's message names its key
+BAD_CONFIGS = [
+    ({"refine_rounds": -1}, r"^refine_rounds must be an integer >= 0, got -1"),
+    ({"normal_rotation": "pxl"}, r"^normal_rotation must be one of \('centroid', 'pixel'\), got 'pxl'"),
+    ({"conv_samples_per_tree": 0}, r"^conv_samples_per_tree must be an integer >= 1"),
+    ({"integrate": {"method": "l3"}}, r"^integrate.method must be one of .*got 'l3'"),
+    ({"integrate": {"tol": 0.0}}, r"^integrate.tol must be > 0"),
+    ({"forest": {"n_trees": 0}}, r"^forest.n_trees must be an int >= 1, got 0"),
+    ({"forest": {"max_features": 0}}, r"^forest.max_features must be >= 1"),
+    ({"forest": {"_target_": "sfs_torch.forest.NoSuchForest"}}, r"^forest._target_='sfs_torch.forest.NoSuchForest' could not"),
+    ({"database": {"n_shapes": 0}}, r"^database.n_shapes must be a positive integer"),
+    ({"silhouette": {"depth_layer_ratio": 1.0}}, r"^silhouette.depth_layer_ratio must be > 1"),
+    ({"silhouette": {"prune_angle": 30.0}}, r"^silhouette.prune_angle=30.0 needs features.silhouette=false"),
+    ({"texton": {"kernel_size": 4}}, r"^texton.kernel_size must be a positive odd integer"),
+    ({"texton": {"kernel_size": 7}}, r"^texton.kernel_size \(7\) must equal database.patch_size \(5\)"),
+    ({"reflectance_map": {"profile": "cube"}}, r"^reflectance_map.profile must be one of"),
+    ({"features": {"rgb": False, "silhouette": False, "texton": False}}, r"^features enables no feature"),
+    ({"training": {"noise_sigma": -0.1}}, r"^training.noise_sigma must be"),
+    ({"camera": {"focal": -3.0}}, r"^camera.focal must be a positive focal length"),
+    ({"camera": {"focal": 100.0, "principal_point": [1.0]}}, r"^camera.principal_point must be two finite numbers"),
+    ({"refine": {"when": "sometimes"}}, r"^refine.when must be one of"),
+    ({"refine_rounds": 1.5}, r"full_key: refine_rounds"),
+    # a key that moved out of a stage's config says where it went
+    ({"reflectance_map": {"refine_rounds": 0}}, r"reflectance_map.refine_rounds is now refine_rounds"),
+    ({"reflectance_map": {"keep_prior": False}}, r"reflectance_map.keep_prior is now keep_prior"),
+    ({"reflectance_map": {"valid_refit": False}}, r"reflectance_map.valid_refit is now valid_refit"),
+    ({"camera": {"normal_rotation": "pixel"}}, r"camera.normal_rotation is now normal_rotation"),
+    ({"training": {"conv_samples_per_tree": 2}}, r"training.conv_samples_per_tree is now conv_samples_per_tree"),
+]
+
+
+class TestConfigCheckedAtEntry:
+    @pytest.fixture()
+    def no_work(self, monkeypatch):
+        def never(*args, **kwargs):
+            raise AssertionError("work started before the config was checked")
+
+        for name in ("load_database", "estimate_lighting", "pixel_features", "_trained_forest"):
+            monkeypatch.setattr(pipeline, name, never)
+
+    @pytest.mark.parametrize("config, match", BAD_CONFIGS, ids=[str(c) for c, _ in BAD_CONFIGS])
+    def test_estimate(self, scene, no_work, config, match):
+        _, mask, _, image = scene
+        with pytest.raises(ValueError, match=match):
+            sfs_torch.estimate(image, mask, config={**TINY, **config}, progress=False)
+
+    @pytest.mark.parametrize("config, match", BAD_CONFIGS[:6], ids=[str(c) for c, _ in BAD_CONFIGS[:6]])
+    def test_model(self, config, match):
+        from sfs_torch.model import ShapeFromShading
+
+        with pytest.raises(ValueError, match=match):
+            ShapeFromShading({**TINY, **config})
+
+    def test_good_values_pass(self):
+        cfg = resolve_config({"refine_rounds": 0, "normal_rotation": "pixel", "conv_samples_per_tree": 3,
+                              "integrate": {"method": "conv"}, "silhouette": {"prune_angle": 30.0},
+                              "features": {"silhouette": False}, "camera": {"focal": 500.0, "principal_point": [1, 2]}})
+        assert (cfg.refine_rounds, cfg.normal_rotation, cfg.conv_samples_per_tree) == (0, "pixel", 3)
+        assert cfg.integrate.method == "conv" and cfg.silhouette.prune_angle == 30.0
+
+
+class TestStagesBuiltFromTheirConfigs:
+    """The forest and the integrator are ``hydra.utils.instantiate`` of ``forest`` and ``integrate``
+    (their ``_target_``), and the silhouette group reaches every silhouette computation."""
+
+    def test_forest_target(self, scene, monkeypatch):
+        from sfs_torch import forest as forest_module
+
+        built = []
+
+        class Recording(forest_module.VMFForest):
+            def fit(self, X, normals):
+                built.append(self)
+                return super().fit(X, normals)
+
+        monkeypatch.setattr(forest_module, "RecordingForest", Recording, raising=False)
+        _, mask, sh, image = scene
+        config = {**TINY, "forest": {**TINY["forest"], "_target_": "sfs_torch.forest.RecordingForest", "n_bins": 32},
+                  "training": {"cache_forests": "never"}, "refine": {"when": "never"}}
+        sfs_torch.estimate(image, mask, lighting=sh, config=config, progress=False)
+        assert len(built) == 1 and (built[0].n_trees, built[0].n_bins) == (8, 32)
+
+    def test_integrate_options_reach_the_integrator(self, scene, monkeypatch):
+        from sfs_torch import integrability
+
+        built = []
+
+        class Recording(integrability.Integrator):
+            def forward(self, normals, mask, weights=None):
+                built.append(self)
+                return super().forward(normals, mask, weights)
+
+        monkeypatch.setattr(integrability, "Integrator", Recording)
+        _, mask, sh, image = scene
+        config = {**TINY, "integrate": {"method": "l1", "l1_iter": 2, "max_iter": 50}, "refine": {"when": "never"}}
+        est = sfs_torch.estimate(image, mask, lighting=sh, focal=80.0, config=config, progress=False)
+        assert est.depth is not None and len(built) == 1
+        assert (built[0].method, built[0].l1_iter, built[0].max_iter, built[0].focal) == ("l1", 2, 50, 80.0)
+
+    def test_silhouette_options_reach_every_silhouette_computation(self, scene, monkeypatch):
+        import sfs_torch.refine as refine_module
+        from sfs_torch.silhouette import SilhouetteConfig
+
+        seen = []
+
+        def recording(module, name, position):
+            original = getattr(module, name)
+
+            def wrapper(*args, **kwargs):
+                seen.append((name, kwargs.get("silhouette", kwargs.get("config", args[position] if len(args) > position else None))))
+                return original(*args, **kwargs)
+
+            monkeypatch.setattr(module, name, wrapper)
+
+        recording(pipeline, "estimate_lighting", 99)
+        recording(pipeline, "coarse_normals", 3)
+        recording(refine_module, "coarse_normals", 3)
+        _, mask, _, image = scene
+        options = SilhouetteConfig(gradient_sigma=0.5, prune_angle=45.0)
+        config = {**TINY, "silhouette": {"gradient_sigma": 0.5, "prune_angle": 45.0},
+                  "features": {"silhouette": False}, "refine": {"when": "always", "iterations": 2}}
+        sfs_torch.estimate(image, mask, config=config, progress=False)
+        assert {name for name, _ in seen} == {"estimate_lighting", "coarse_normals"}
+        assert all(value == options for _, value in seen) and len(seen) >= 3
 
 
 class TestInputValidation:
@@ -459,7 +578,7 @@ class TestSaturatedImage:
         saturated = float((image[:, mask[0]] >= 1).any(0).float().mean())
         assert 0.45 < saturated < 0.55
         errors = {}
-        for label, extra in (("default", {}), ("no refit", {"reflectance_map": {"refine_rounds": 0}})):
+        for label, extra in (("default", {}), ("no refit", {"refine_rounds": 0})):
             scores = []
             # over three forest seeds: one tiny forest's luck on one 64 px image moves the median by ~0.5 deg
             for seed in self.SEEDS:
