@@ -11,22 +11,26 @@
 
 Both forests get the same trees / depth / max_features / min_samples_leaf / row share
 (``ForestConfig`` defaults; sklearn draws its rows with replacement, ours without) and
-all cores (``torch.set_num_threads(cores)``, ``n_jobs=cores``). sklearn's 3-output mean
+all cores (``torch.set_num_threads(cores)``, which our ``n_jobs=None`` follows, and
+sklearn's ``n_jobs=cores``). sklearn's 3-output mean
 is normalised to a unit normal. Times are wall and CPU (process) seconds, each the best
 of ``--repeat`` fits, ours and sklearn's alternating; the machine may be shared, so the
 load average is printed with the tables.
 
     python benchmarks/forest.py            # both tables (~12 min on 2 busy cores)
     python benchmarks/forest.py --quick    # 30k training rows, one lighting, depth 12/18 x 20/40 features (~1 min)
-    # the fit of another forest.py (e.g. the previous commit's) side by side with this one:
+    # the fit of another forest.py (e.g. the previous commit's) side by side with this one,
+    # at 1 thread and at --threads:
     git show HEAD:sfs_torch/forest.py > /tmp/forest_old.py
     python benchmarks/forest.py --quick --baseline /tmp/forest_old.py
     python benchmarks/forest.py --defaults-sweep   # our hyper-parameters around the defaults
+    python benchmarks/forest.py --threads-sweep    # our fit: tree threads (n_jobs) x intra-op threads
 """
 from __future__ import annotations
 
 import argparse
 import importlib.util
+import inspect
 import json
 import math
 import os
@@ -193,11 +197,18 @@ def load_baseline(path: str):
     return module.VMFForest
 
 
+def accepted(cls, cfg: dict) -> dict:
+    """The part of ``cfg`` that ``cls`` takes (an older forest.py may lack newer options, e.g. ``n_jobs``)."""
+    params = inspect.signature(cls).parameters
+    return {k: v for k, v in cfg.items() if k in params}
+
+
 def baseline_ratio(baseline_cls, cfg: dict, train, repeat: int) -> dict:
     times = {"baseline": [], "this": []}
     for r in range(repeat):
         for which in (("baseline", "this") if r % 2 == 0 else ("this", "baseline")):
-            forest = (baseline_cls if which == "baseline" else VMFForest)(**cfg)
+            cls = baseline_cls if which == "baseline" else VMFForest
+            forest = cls(**accepted(cls, cfg))
             _, wall, cpu = timed(lambda: forest.fit(*train))
             times[which].append((wall, cpu))
     out = {k: {"fit_s": min(w for w, _ in v), "fit_cpu_s": min(c for _, c in v),
@@ -215,11 +226,14 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=2, help="fits per model and setting (the best is kept)")
     parser.add_argument("--baseline", help="another forest.py whose fit to time side by side with this one")
     parser.add_argument("--defaults-sweep", action="store_true", help="only sweep our hyper-parameters around the defaults")
+    parser.add_argument("--threads-sweep", action="store_true", help="only time our fit over n_jobs x intra-op threads")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     repeat = args.repeat
     if args.defaults_sweep:
         return defaults_sweep(args.threads)
+    if args.threads_sweep:
+        return threads_sweep(args.threads, max(repeat, 5))
 
     n_train = 30_000 if args.quick else 150_000
     result = {"threads": args.threads, "repeat": repeat, "torch": torch.__version__, "config": DEFAULTS}
@@ -231,15 +245,19 @@ def main() -> None:
     if args.baseline:
         baseline_cls = load_baseline(args.baseline)
         data = sets[0]["all"]  # all ~150k rows: the size the pipeline trains on
-        baseline_cls(**DEFAULTS).fit(*data)
+        baseline_cls(**accepted(baseline_cls, DEFAULTS)).fit(*data)
         reps = max(repeat, 3)
-        result["baseline"] = {"file": args.baseline, "rows": len(data[0]), "lighting": sets[0]["name"],
-                              **baseline_ratio(baseline_cls, DEFAULTS, data, reps)}
-        b = result["baseline"]
-        print(f"baseline {args.baseline} vs this forest.py, default ForestConfig on {sets[0]['name']} "
-              f"({b['rows']} rows x 23), {args.threads} threads, best of {reps}: fit {b['baseline']['fit_s']:.2f} s -> "
-              f"{b['this']['fit_s']:.2f} s ({b['speedup']:.2f}x; CPU {b['baseline']['fit_cpu_s']:.2f} -> "
-              f"{b['this']['fit_cpu_s']:.2f} s, {b['cpu_speedup']:.2f}x)", flush=True)
+        result["baseline"] = []
+        for threads in sorted({1, args.threads}):
+            torch.set_num_threads(threads)
+            b = {"file": args.baseline, "rows": len(data[0]), "lighting": sets[0]["name"], "threads": threads,
+                 **baseline_ratio(baseline_cls, DEFAULTS, data, reps)}
+            result["baseline"].append(b)
+            print(f"baseline {args.baseline} vs this forest.py, default ForestConfig on {sets[0]['name']} "
+                  f"({b['rows']} rows x 23), {threads} threads, best of {reps}: fit {b['baseline']['fit_s']:.2f} s -> "
+                  f"{b['this']['fit_s']:.2f} s ({b['speedup']:.2f}x; CPU {b['baseline']['fit_cpu_s']:.2f} -> "
+                  f"{b['this']['fit_cpu_s']:.2f} s, {b['cpu_speedup']:.2f}x; load {os.getloadavg()[0]:.1f})", flush=True)
+        torch.set_num_threads(args.threads)
 
     project = []
     for s in sets:
@@ -287,6 +305,33 @@ def _row(head: str, r: dict) -> str:
     o, s = r["ours"], r["sklearn"]
     return (f"| {head} | {o['fit_s']:.2f} ({o['fit_cpu_s']:.2f}) | {s['fit_s']:.2f} ({s['fit_cpu_s']:.2f}) | "
             f"{r['speedup']:.1f}x ({r['cpu_speedup']:.1f}x) | {o['median_deg']:.2f} / {s['median_deg']:.2f} deg |")
+
+
+def threads_sweep(threads: int, repeat: int) -> None:
+    """Our default fit on the first project set (all ~150k rows) for each (n_jobs, intra-op threads).
+
+    ``n_jobs`` trees grow at once in threads; each of those threads runs torch's
+    intra-op parallelism with ``torch.get_num_threads()`` threads, which a worker takes
+    from the process setting when it starts: so ``torch.set_num_threads(1)`` around a
+    fit with ``n_jobs=threads`` is the "one intra-op thread per tree thread" option.
+    """
+    data = project_sets(1, None)[0]["all"]
+    options = sorted({(jobs, intra) for jobs in (1, threads) for intra in (1, threads)})
+    VMFForest(**DEFAULTS).fit(*data)
+    times: dict = {o: [] for o in options}
+    for r in range(repeat):  # alternate the order
+        for jobs, intra in (options if r % 2 == 0 else options[::-1]):
+            torch.set_num_threads(intra)
+            forest = VMFForest(**{**DEFAULTS, "n_jobs": jobs})
+            times[(jobs, intra)].append(timed(lambda: forest.fit(*data))[1:])
+    torch.set_num_threads(threads)
+    print(f"default ForestConfig, {len(data[0])} rows; best / median of {repeat} (wall s, CPU s); "
+          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}; load average {os.getloadavg()[0]:.1f}")
+    print("| n_jobs | intra-op threads | wall s best (median) | CPU s best (median) |\n|---|---|---|---|")
+    for (jobs, intra), t in times.items():
+        wall, cpu = [w for w, _ in t], [c for _, c in t]
+        print(f"| {jobs} | {intra} | {min(wall):.2f} ({statistics.median(wall):.2f}) | "
+              f"{min(cpu):.2f} ({statistics.median(cpu):.2f}) |")
 
 
 def defaults_sweep(threads: int) -> None:

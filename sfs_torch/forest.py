@@ -1,8 +1,10 @@
 r"""Regression forest with von Mises-Fisher leaves (Richter & Roth 2015, Sec. 5).
 
 The forest is retrained for every test lighting, so training speed dominates the
-method's cost. All trees grow at once, one tree level per Python iteration, with
-histogram split search:
+method's cost. Trees grow one level per Python iteration, with histogram split search;
+on the CPU each tree grows on its own and ``n_jobs`` trees at once in threads (the hot
+scatter-adds are single-threaded in ATen; torch ops release the GIL), on a GPU all
+trees grow together:
 
 1. every feature is cut once into ``n_bins`` quantile bins (the edges are data values,
    so a bin threshold is also an exact threshold on the raw feature);
@@ -10,8 +12,10 @@ histogram split search:
    (tree, row) pairs of the nodes still growing are kept grouped by node (a stable
    counting-sort partition per level), so the histogram writes of one node stay in a
    small, cache-resident block; pairs of nodes that cannot split are dropped;
-3. per level, every node draws its ``max_features`` features by hashing (seed, node id,
-   feature) on the device (no generator, no host transfer); for each feature slot,
+3. per level, every node draws its ``max_features`` features by hashing (seed, node key,
+   feature) on the device (no generator, no host transfer), where a node's key hashes
+   its tree's index and its path from the root, so the draws (and the forest) do not
+   depend on which trees grow together or on ``n_jobs``; for each feature slot,
    ``scatter_add_`` accumulates per bin the count and the vector sum of the normals
    (packed as two complex numbers, ``count + i n_x`` and ``n_y + i n_z``, which halves
    the scatter work); a cumulative sum over bins gives both children of every
@@ -33,9 +37,10 @@ from __future__ import annotations
 import json
 import logging
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Union
+from typing import NamedTuple, Optional, Union
 
 import torch
 from torch import Tensor
@@ -228,6 +233,7 @@ class ForestConfig:
     n_bins: int = 64
     sample_fraction: float = 0.9
     seed: int = 0
+    n_jobs: Optional[int] = None
 
 
 class NotFittedError(ValueError, AttributeError):
@@ -249,6 +255,9 @@ class VMFForest:
         sample_fraction: share of the rows each tree trains on (without replacement).
         seed: seed of every random draw (row subsets, feature subsets).
         device: device to train on; ``None`` trains where ``X`` lives.
+        n_jobs: trees grown at once in threads on the CPU; ``None`` is
+            ``torch.get_num_threads()``. The forest does not depend on it (bit for bit);
+            ignored on other devices, where all trees grow together.
 
     Attributes (after :meth:`fit`; nodes of all trees in one flat level-ordered table):
         feature_: split feature per node, :math:`(M,)` int64 (0 in leaves).
@@ -276,6 +285,7 @@ class VMFForest:
         sample_fraction: float = ForestConfig.sample_fraction,
         seed: int = ForestConfig.seed,
         device: Optional[Union[str, torch.device]] = None,
+        n_jobs: Optional[int] = ForestConfig.n_jobs,
     ) -> None:
         self.n_trees = n_trees
         self.max_depth = max_depth
@@ -285,6 +295,7 @@ class VMFForest:
         self.sample_fraction = sample_fraction
         self.seed = seed
         self.device = device
+        self.n_jobs = n_jobs
 
     # ------------------------------------------------------------------ params
     def get_params(self) -> dict:
@@ -298,6 +309,7 @@ class VMFForest:
             "sample_fraction": self.sample_fraction,
             "seed": self.seed,
             "device": None if self.device is None else str(self.device),
+            "n_jobs": self.n_jobs,
         }
 
     def _validate_params(self, n_features: int) -> int:
@@ -310,6 +322,9 @@ class VMFForest:
         positive_int("max_depth", 0)
         positive_int("min_samples_leaf", 1)
         positive_int("seed", 0)
+        j = self.n_jobs
+        if j is not None and (isinstance(j, bool) or not isinstance(j, int) or j < 1):
+            raise ValueError(f"n_jobs must be None (torch.get_num_threads()) or an int >= 1, got {j!r}")
         if isinstance(self.n_bins, bool) or not isinstance(self.n_bins, int) or not 2 <= self.n_bins <= 256:
             raise ValueError(f"n_bins must be an int in [2, 256], got {self.n_bins!r}")
         if not (isinstance(self.sample_fraction, (int, float)) and 0.0 < self.sample_fraction <= 1.0):
@@ -358,16 +373,16 @@ class VMFForest:
 
         edges = _quantile_edges(X, self.n_bins, generator)
         binned = _bin(X, edges)
+        rows = _sample_rows(X.shape[0], self.n_trees, self.sample_fraction, generator, device)
         tree = _grow(
             binned,
             normals,
-            n_trees=self.n_trees,
+            rows,
+            n_jobs=torch.get_num_threads() if self.n_jobs is None else self.n_jobs,
             max_depth=self.max_depth,
             min_samples_leaf=self.min_samples_leaf,
             max_features=m,
             n_bins=self.n_bins,
-            sample_fraction=self.sample_fraction,
-            generator=generator,
             seed=self.seed,
         )
         leaf = tree["child"] == torch.arange(tree["child"].numel(), device=device)
@@ -558,147 +573,284 @@ def _stats(c0: Tensor, c1: Tensor) -> list[Tensor]:
     return [a[..., 0], a[..., 1], b[..., 0], b[..., 1]]
 
 
+def _child_keys(parent: Tensor, side: Tensor) -> Tensor:
+    # A node's key for _draw_features, from its parent's key and its side (0 left, 1
+    # right): a bijective 32-bit hash, so siblings never share a key. Roots are keyed by
+    # their tree's index, so a node's draws depend on its tree and its path from the
+    # root only, not on the other trees or on which of them grow together.
+    return _mix32((parent + 0x9E3779B9 * (1 + side)) & _MASK32)
+
+
+def _sample_rows(
+    n_rows: int, n_trees: int, sample_fraction: float, generator: torch.Generator, device: torch.device
+) -> Tensor:
+    """In-bag rows of each tree, ``(n_trees, n_in)`` int64 on ``device``, ascending within a tree.
+
+    Drawn without replacement on the CPU generator, tree after tree, so that a seed
+    gives the same rows on every device and for any grouping of the trees; one
+    transfer and one ``nonzero`` (a host sync on a GPU).
+    """
+    n_in = max(1, round(sample_fraction * n_rows))
+    in_bag = torch.zeros(n_trees, n_rows, dtype=torch.bool)
+    for tree in range(n_trees):
+        in_bag[tree, torch.randperm(n_rows, generator=generator)[:n_in]] = True
+    return in_bag.to(device).nonzero()[:, 1].view(n_trees, n_in)
+
+
+class _Level(NamedTuple):
+    """One tree level of a group of trees, nodes in level order: split feature and bin
+    (0 where not split), whether the node split, in-bag count and normal sum (M, 3)."""
+
+    feature: Tensor
+    bin: Tensor
+    split: Tensor
+    count: Tensor
+    sum: Tensor
+
+
+class _Workspace:
+    """Buffers one group of trees reuses at every level: the histogram, and per-pair
+    scratch sliced to the level's pair count (pairs only ever drop out)."""
+
+    def __init__(self, n_pairs: int, index_dtype: torch.dtype, stat_dtype: torch.dtype, device: torch.device):
+        self.hist = torch.empty(0, dtype=stat_dtype, device=device)
+        self.pair_index = torch.arange(n_pairs, device=device)
+        self.where = torch.empty(n_pairs, dtype=index_dtype, device=device)
+        self.code = torch.empty(n_pairs, dtype=torch.uint8, device=device)
+        self.cell = torch.empty(n_pairs, dtype=torch.int64, device=device)
+
+
 def _grow(
     binned: Tensor,
     normals: Tensor,
+    rows: Tensor,
     *,
-    n_trees: int,
+    n_jobs: int,
     max_depth: int,
     min_samples_leaf: int,
     max_features: int,
     n_bins: int,
-    sample_fraction: float,
-    generator: torch.Generator,
     seed: int,
 ) -> dict:
-    """Grow all trees level by level on binned features ``(F, N)`` uint8 (feature-major).
+    """Grow the trees whose in-bag ``rows`` (T, n_in) are given, on binned features ``(F, N)`` uint8.
 
-    Returns a dict of flat node tensors in level order: ``feature`` (M,), ``bin``
-    (M,) (rows with bin > bin go right), ``child`` (M,) (left child, self for leaves),
-    ``count`` (M,), ``sum`` (M, 3), and ``depth`` (int, levels grown).
+    On the CPU every tree grows on its own (:func:`_grow_trees` on one tree), ``n_jobs``
+    of them at a time in threads: the hot scatter-adds are single-threaded in ATen and
+    most per-level ops are small, while torch ops release the GIL, so threads over trees
+    use the cores that intra-op parallelism leaves idle. A tree's work does not depend on the others, so the forest
+    is the same bit for bit for any ``n_jobs``. On other devices all trees grow as one
+    group in the calling thread (a GPU parallelises within each op).
+
+    Returns a dict of flat node tensors in level order (the nodes of level ``l`` of all
+    trees, tree after tree): ``feature`` (M,), ``bin`` (M,) (rows whose bin exceeds it
+    go right), ``child`` (M,) (left child, self for leaves), ``count`` (M,), ``sum``
+    (M, 3), and ``depth`` (int, levels grown).
+    """
+    n_trees, n_in = rows.shape
+    n_features, n_rows = binned.shape
+    index_dtype = torch.int32 if max(n_trees * n_in, n_features * n_rows) < _INT32_LIMIT else torch.int64
+    kw = dict(
+        max_depth=max_depth, min_samples_leaf=min_samples_leaf, max_features=max_features, n_bins=n_bins,
+        seed=seed, index_dtype=index_dtype,
+    )
+    stream = _row_streams(normals)
+    if normals.device.type != "cpu":
+        return _assemble_levels([_grow_trees(binned, stream, rows, 0, **kw)])
+
+    def grow_one(tree: int) -> list[_Level]:
+        return _grow_trees(binned, stream, rows[tree : tree + 1], tree, **kw)
+
+    workers = min(n_jobs, n_trees)
+    if workers == 1:
+        return _assemble_levels([grow_one(tree) for tree in range(n_trees)])
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="sfs_torch.forest") as pool:
+        return _assemble_levels(list(pool.map(grow_one, range(n_trees))))
+
+
+def _grow_trees(
+    binned: Tensor,
+    stream: list[Tensor],
+    rows: Tensor,
+    first_tree: int,
+    *,
+    max_depth: int,
+    min_samples_leaf: int,
+    max_features: int,
+    n_bins: int,
+    seed: int,
+    index_dtype: torch.dtype,
+) -> list[_Level]:
+    """Grow a group of trees (trees ``first_tree, first_tree + 1, ...``) level by level.
+
+    ``stream`` holds the rows' statistics (:func:`_row_streams`), ``rows`` (T, n_in)
+    each tree's in-bag rows.
 
     State per level: the *active* nodes (those that may split; ``cand`` indexes them in
-    the level's node list) and one (tree, row) *pair* per in-bag row of an active node,
-    held as its row ``offset`` and active-node index ``pnode``, grouped by node with
-    rows ascending inside. Pairs of nodes that cannot split are dropped when routed, so
-    no later pass reads them. On a GPU (one chunk of nodes) there are two host syncs per
-    level, the number of candidate thresholds and the next level's sizes; on the CPU,
-    where syncs cost nothing, one more per chunk.
+    the level's node list, ``key`` holds their draw keys) and one (tree, row) *pair* per
+    in-bag row of an active node, held as its row ``offset`` and active-node index
+    ``pnode``, grouped by node with rows ascending inside. Pairs of nodes that cannot
+    split are dropped when routed, so no later pass reads them. On a GPU (one chunk of
+    nodes) there are two host syncs per level, the number of candidate thresholds and
+    the next level's sizes; on the CPU, where syncs cost nothing, one more per chunk.
     """
-    device, dtype = normals.device, normals.dtype
-    n_features, n_rows = binned.shape
-    n_in = max(1, round(sample_fraction * n_rows))
-    n_pairs = n_trees * n_in
-    index_dtype = torch.int32 if max(n_pairs, n_features * n_rows) < _INT32_LIMIT else torch.int64
+    device = rows.device
+    n_trees, n_in = rows.shape
     flat_bins = binned.view(-1)
-    # The row subsets are drawn once on the CPU generator (one transfer), so that a seed
-    # gives the same forest on every device; the per-node feature draws are hashed on
-    # the device (_draw_features).
-    in_bag = torch.zeros(n_trees, n_rows, dtype=torch.bool)
-    for tree in range(n_trees):
-        in_bag[tree, torch.randperm(n_rows, generator=generator)[:n_in]] = True
-    offset = in_bag.to(device).nonzero()[:, 1].to(index_dtype)  # rows, ascending within each tree
-    # Per-row statistics (1, n_x, n_y, n_z) as two complex streams: one scatter-add then
-    # accumulates two statistics.
-    stream = [torch.complex(torch.ones_like(normals[:, 0]), normals[:, 0]), torch.complex(normals[:, 1], normals[:, 2])]
-    pair_stats = torch.stack([s.index_select(0, offset) for s in stream], 1)
-    vsum = torch.view_as_real(pair_stats.view(n_trees, n_in, 2).sum(1)).reshape(n_trees, 4)[:, 1:]
-    count = torch.full((n_trees,), float(n_in), dtype=dtype, device=device)
-    del pair_stats
+    offset = rows.reshape(-1).to(index_dtype)  # rows, ascending within each tree
+    count, vsum = _root_statistics(stream, offset, n_trees, n_in)
     pnode = torch.arange(n_trees, dtype=index_dtype, device=device).repeat_interleave(n_in)
     n_cand = n_trees if n_in >= 2 * min_samples_leaf else 0
     cand = torch.arange(n_cand, device=device)
+    key = cand + first_tree  # a root's key is its tree's index
     node_pairs = torch.full((n_cand,), n_in, dtype=torch.int64, device=device)  # pairs per active node
-    chunk_cells = _CHUNK_CELLS
+    work = _Workspace(offset.numel(), index_dtype, stream[0].dtype, device)
 
-    features, bins, childs, counts, sums = [], [], [], [], []
-    next_id, depth = n_trees, 0
-    hist_buffer = torch.empty(0, dtype=stream[0].dtype, device=device)
-    # per-pair scratch, sliced to each level's pair count (pairs only ever drop out)
-    pair_index = torch.arange(n_pairs, device=device)
-    scratch_where = torch.empty(n_pairs, dtype=index_dtype, device=device)
-    scratch_code = torch.empty(n_pairs, dtype=torch.uint8, device=device)
-    scratch_cell = torch.empty(n_pairs, dtype=torch.int64, device=device)
-
+    levels = []
     for level in range(max_depth + 1):
         n_level = count.numel()
         feature = torch.zeros(n_level, dtype=torch.long, device=device)
         split_bin = torch.zeros(n_level, dtype=torch.long, device=device)
-        child = torch.arange(next_id - n_level, next_id, device=device)  # leaves point to themselves
-        counts.append(count)
-        sums.append(vsum)
-        features.append(feature)
-        bins.append(split_bin)
-        childs.append(child)
+        is_split = torch.zeros(n_level, dtype=torch.bool, device=device)
+        levels.append(_Level(feature, split_bin, is_split, count, vsum))
         if level == max_depth or n_cand == 0:
             break
-        n_pairs = offset.numel()
-        feats = _draw_features(seed, cand + (next_id - n_level), n_features, max_features)  # (n_cand, m)
-        slot_start = (feats * n_rows).T.to(index_dtype).contiguous()  # where each slot's feature starts in flat_bins
-        sources = [s.index_select(0, offset) for s in stream]
-        # The best split of every node, over chunks of whole nodes (their pairs are
-        # contiguous) small enough for the chunk's histogram and candidates to stay in
-        # cache; on other devices one chunk.
-        per_chunk = max(1, chunk_cells // (2 * max_features * n_bins)) if device.type == "cpu" else n_cand
-        if per_chunk >= n_cand:
-            bounds = [(0, n_cand, 0, n_pairs)]
-        else:
-            ends = list(range(per_chunk, n_cand, per_chunk))
-            starts = node_pairs.cumsum(0).index_select(0, torch.tensor(ends, device=device) - 1).tolist()  # host sync
-            nodes, pairs = [0, *ends, n_cand], [0, *starts, n_pairs]
-            bounds = list(zip(nodes[:-1], nodes[1:], pairs[:-1], pairs[1:]))
-        best = torch.empty(n_cand, dtype=dtype, device=device)
-        slot = torch.empty(n_cand, dtype=torch.long, device=device)
-        b = torch.empty(n_cand, dtype=torch.long, device=device)
-        left = torch.empty(n_cand, 4, dtype=dtype, device=device)
-        total = torch.empty(n_cand, 4, dtype=dtype, device=device)
-        for k0, k1, p0, p1 in bounds:
-            hist_buffer = _best_splits(
-                flat_bins, slot_start[:, k0:k1], offset[p0:p1], pnode[p0:p1] - k0, [s[p0:p1] for s in sources],
-                n_bins, min_samples_leaf, hist_buffer, scratch_where[p0:p1], scratch_code[p0:p1], scratch_cell[p0:p1],
-                out=(best[k0:k1], slot[k0:k1], b[k0:k1], left[k0:k1], total[k0:k1]),
-            )
-        del sources
-        node_count, node_sum = count.index_select(0, cand), vsum.index_select(0, cand)
-        parent = _weighted_entropy(node_count, *node_sum.unbind(1), max_kappa=MAX_KAPPA)
-        # A split must lower the entropy by more than float rounding of the sums.
-        tol = 1e-5 * (node_count + parent.abs())
-        split = torch.isfinite(best) & (best < parent - tol)
-        slot, b = torch.where(split, slot, 0), torch.where(split, b, 0)
+        feats = _draw_features(seed, key, binned.shape[0], max_features)  # (n_cand, m)
+        best, slot, b, left, total = _search_splits(
+            flat_bins, feats, offset, pnode, stream, node_pairs, n_rows=binned.shape[1], n_bins=n_bins,
+            min_samples_leaf=min_samples_leaf, work=work,
+        )
+        split, best_feature, b = _choose_splits(
+            best, slot, b, feats, count.index_select(0, cand), vsum.index_select(0, cand)
+        )
+        feature[cand] = best_feature
+        split_bin[cand] = b
+        is_split[cand] = split
         child_stats = torch.stack([left, total - left], dim=1)  # (n_cand, 2, 4)
-        best_feature = feats.gather(1, slot[:, None]).squeeze(1)
-        rank = split.cumsum(0) - 1
-        feature[cand] = torch.where(split, best_feature, 0)
-        split_bin[cand] = torch.where(split, b, 0)
-        child[cand] = torch.where(split, next_id + 2 * rank, child.index_select(0, cand))
-
         active = (split[:, None] & (child_stats[..., 0] >= 2 * min_samples_leaf)).view(-1)  # (2 n_cand,)
         if level + 1 < max_depth:
+            n_pairs = offset.numel()
+            where = (best_feature * binned.shape[1]).to(index_dtype).index_select(0, pnode).add_(offset)
             n_split, n_cand, offset, pnode, next_active, node_pairs = _route(
-                flat_bins, (best_feature * n_rows).to(index_dtype).index_select(0, pnode).add_(offset), offset, pnode,
-                b, split, active, scratch_code[:n_pairs], pair_index[:n_pairs],
+                flat_bins, where, offset, pnode, b, split, active, work.code[:n_pairs], work.pair_index[:n_pairs],
             )
         else:  # the children are leaves: no pair needs routing
             n_split, n_cand, next_active = int(split.sum()), 0, cand[:0]
         if n_split == 0:
             break
-        split_nodes = _compact(split, n_split)
-        child_stats = child_stats.index_select(0, split_nodes).reshape(-1, 4)
-        count, vsum = child_stats[:, 0], child_stats[:, 1:].contiguous()
+        count, vsum = _child_statistics(child_stats, split, n_split)
         # active children, as indices into the next level's node list (2 rank + side)
-        cand = 2 * rank.index_select(0, next_active // 2) + next_active % 2
-        next_id += 2 * n_split
-        depth = level + 1
-        logger.debug("level %d: %d of %d nodes split, %d pairs", level, n_split, n_level, offset.numel())
+        parent, side = next_active // 2, next_active % 2
+        cand = 2 * (split.cumsum(0) - 1).index_select(0, parent) + side
+        key = _child_keys(key.index_select(0, parent), side)
+        logger.debug("trees %d+%d, level %d: %d of %d nodes split, %d pairs",
+                     first_tree, n_trees, level, n_split, n_level, offset.numel())
+    return levels
 
-    return {
-        "feature": torch.cat(features),
-        "bin": torch.cat(bins),
-        "child": torch.cat(childs),
-        "count": torch.cat(counts),
-        "sum": torch.cat(sums),
-        "depth": depth,
-    }
+
+def _row_streams(normals: Tensor) -> list[Tensor]:
+    # Per-row statistics (1, n_x, n_y, n_z) as two complex streams: one scatter-add then
+    # accumulates two statistics.
+    return [torch.complex(torch.ones_like(normals[:, 0]), normals[:, 0]), torch.complex(normals[:, 1], normals[:, 2])]
+
+
+def _root_statistics(stream: list[Tensor], offset: Tensor, n_trees: int, n_in: int) -> tuple[Tensor, Tensor]:
+    """In-bag count ``(T,)`` and normal sum ``(T, 3)`` of each tree's root."""
+    pair_stats = torch.stack([s.index_select(0, offset) for s in stream], 1)
+    vsum = torch.view_as_real(pair_stats.view(n_trees, n_in, 2).sum(1)).reshape(n_trees, 4)[:, 1:]
+    count = torch.full((n_trees,), float(n_in), dtype=vsum.dtype, device=vsum.device)
+    return count, vsum
+
+
+def _search_splits(
+    flat_bins: Tensor,
+    feats: Tensor,
+    offset: Tensor,
+    pnode: Tensor,
+    stream: list[Tensor],
+    node_pairs: Tensor,
+    *,
+    n_rows: int,
+    n_bins: int,
+    min_samples_leaf: int,
+    work: _Workspace,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The best threshold of every active node of a level, over its drawn features ``feats`` (n, m).
+
+    Runs :func:`_best_splits` over chunks of whole nodes (their pairs are contiguous)
+    small enough for the chunk's histogram and candidates to stay in cache; on other
+    devices one chunk. Returns per node the best score (``inf`` without any valid
+    threshold), its feature slot and bin, and the left child's and the node's
+    statistics ``(count, n_x, n_y, n_z)`` :math:`(n, 4)`.
+    """
+    device, dtype = offset.device, stream[0].real.dtype
+    n_cand, max_features = feats.shape
+    n_pairs = offset.numel()
+    slot_start = (feats * n_rows).T.to(offset.dtype).contiguous()  # where each slot's feature starts in flat_bins
+    sources = [s.index_select(0, offset) for s in stream]
+    per_chunk = max(1, _CHUNK_CELLS // (2 * max_features * n_bins)) if device.type == "cpu" else n_cand
+    if per_chunk >= n_cand:
+        bounds = [(0, n_cand, 0, n_pairs)]
+    else:
+        ends = list(range(per_chunk, n_cand, per_chunk))
+        starts = node_pairs.cumsum(0).index_select(0, torch.tensor(ends, device=device) - 1).tolist()  # host sync
+        nodes, pairs = [0, *ends, n_cand], [0, *starts, n_pairs]
+        bounds = list(zip(nodes[:-1], nodes[1:], pairs[:-1], pairs[1:]))
+    best = torch.empty(n_cand, dtype=dtype, device=device)
+    slot = torch.empty(n_cand, dtype=torch.long, device=device)
+    b = torch.empty(n_cand, dtype=torch.long, device=device)
+    left = torch.empty(n_cand, 4, dtype=dtype, device=device)
+    total = torch.empty(n_cand, 4, dtype=dtype, device=device)
+    for k0, k1, p0, p1 in bounds:
+        work.hist = _best_splits(
+            flat_bins, slot_start[:, k0:k1], offset[p0:p1], pnode[p0:p1] - k0, [s[p0:p1] for s in sources],
+            n_bins, min_samples_leaf, work.hist, work.where[p0:p1], work.code[p0:p1], work.cell[p0:p1],
+            out=(best[k0:k1], slot[k0:k1], b[k0:k1], left[k0:k1], total[k0:k1]),
+        )
+    return best, slot, b, left, total
+
+
+def _choose_splits(
+    best: Tensor, slot: Tensor, b: Tensor, feats: Tensor, node_count: Tensor, node_sum: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Which active nodes split: those whose best score is below their own ``n H(kappa)``.
+
+    Returns the split mask and, per node, the split feature and bin (0 where not split).
+    """
+    parent = _weighted_entropy(node_count, *node_sum.unbind(1), max_kappa=MAX_KAPPA)
+    # A split must lower the entropy by more than float rounding of the sums.
+    tol = 1e-5 * (node_count + parent.abs())
+    split = torch.isfinite(best) & (best < parent - tol)
+    slot, b = torch.where(split, slot, 0), torch.where(split, b, 0)
+    best_feature = torch.where(split, feats.gather(1, slot[:, None]).squeeze(1), 0)
+    return split, best_feature, b
+
+
+def _child_statistics(child_stats: Tensor, split: Tensor, n_split: int) -> tuple[Tensor, Tensor]:
+    """Count ``(2 S,)`` and normal sum ``(2 S, 3)`` of the children of the S split nodes, left before right."""
+    child_stats = child_stats.index_select(0, _compact(split, n_split)).reshape(-1, 4)
+    return child_stats[:, 0], child_stats[:, 1:].contiguous()
+
+
+def _assemble_levels(groups: list[list[_Level]]) -> dict:
+    """One flat level-ordered node table from the levels of groups of trees (in tree order).
+
+    Level ``l`` of the table holds level ``l`` of every group, group after group; a
+    split node's left child is at the next level's start plus twice its rank among the
+    level's split nodes (children keep their parents' order), a leaf points to itself.
+    """
+    depth = max(len(levels) for levels in groups) - 1
+    parts: dict[str, list[Tensor]] = {name: [] for name in ("feature", "bin", "child", "count", "sum")}
+    start = 0  # index of the level's first node in the table
+    for level in range(depth + 1):
+        nodes = [levels[level] for levels in groups if len(levels) > level]
+        split = torch.cat([n.split for n in nodes])
+        n_level = split.numel()
+        own = torch.arange(start, start + n_level, device=split.device)
+        parts["child"].append(torch.where(split, (start + n_level) + 2 * (split.cumsum(0) - 1), own))
+        for name in ("feature", "bin", "count", "sum"):
+            parts[name].append(torch.cat([getattr(n, name) for n in nodes]))
+        start += n_level
+    return {**{name: torch.cat(value) for name, value in parts.items()}, "depth": depth}
 
 
 def _best_splits(

@@ -426,7 +426,8 @@ def _trained_forest(sh: Tensor, db: GeometryDatabase, cfg: PipelineConfig, timer
     options = {
         "database": asdict(cfg.database), "features": asdict(cfg.features), "texton": asdict(cfg.texton),
         "training": {k: v for k, v in asdict(cfg.training).items() if k not in ("cache_forests", "max_cached_forests")},
-        "forest": asdict(cfg.forest),
+        # n_jobs only says how many trees grow at once: the forest is the same for any value
+        "forest": {k: v for k, v in asdict(cfg.forest).items() if k != "n_jobs"},
     }
     path = forest_path(sh, options)
     forest = load_forest(path, sh.device) if cached else None

@@ -1,4 +1,5 @@
 import math
+import threading
 
 import numpy as np
 import pytest
@@ -12,9 +13,15 @@ from sfs_torch.forest import (
     ForestConfig,
     NotFittedError,
     VMFForest,
+    _assemble_levels,
     _bin,
+    _child_keys,
     _compact,
     _draw_features,
+    _grow,
+    _grow_trees,
+    _row_streams,
+    _sample_rows,
     _mix32,
     _quantile_edges,
     sample_vmf,
@@ -289,6 +296,30 @@ class TestFeatureDraws:
         assert got.device.type == device.type
         assert torch.equal(got.cpu(), _draw_features(11, nodes.cpu(), 23, 8))
 
+    def test_child_keys_golden(self):
+        # pinned like the draws: a node's key is a hash of its tree's index and its path
+        keys = _child_keys(torch.tensor([0, 0, 5, 2**32 - 1]), torch.tensor([0, 1, 1, 0]))
+        assert keys.tolist() == [33350994, 83415710, 1483258754, 2767685996]
+
+    def test_child_keys_give_independent_draws(self):
+        # the keys of 8 levels of 64 trees: all distinct, and the first feature drawn
+        # at a node is independent of its parent's and of its sibling's
+        parents, firsts = [torch.arange(64)], []
+        for _ in range(7):
+            p = parents[-1].repeat_interleave(2)
+            parents.append(_child_keys(p, torch.arange(p.numel()) % 2))
+        keys = torch.cat(parents)
+        assert keys.unique().numel() == keys.numel() == 64 * (2**8 - 1)
+        assert int(keys.min()) >= 0 and int(keys.max()) < 2**32
+        for level in range(1, 8):
+            parent = _draw_features(0, parents[level - 1], 23, 8)[:, 0].repeat_interleave(2)
+            child = _draw_features(0, parents[level], 23, 8)[:, 0]
+            firsts.append((parent, child, child.view(-1, 2).flip(1).reshape(-1)))
+        parent, child, sibling = (torch.cat(x) for x in zip(*firsts))
+        for other in (parent, sibling):
+            joint = torch.bincount(other * 23 + child, minlength=23 * 23)
+            assert stats.chisquare(joint.double().numpy()).pvalue > 1e-3
+
 
 class TestGrowInternals:
     def test_compact(self):
@@ -338,6 +369,60 @@ class TestGrowInternals:
         fit = vmf_fit(total, count)
         torch.testing.assert_close(fit.mean, forest.mean_, rtol=0, atol=1e-9)
         torch.testing.assert_close(fit.kappa, forest.kappa_, rtol=1e-9, atol=1e-9)
+
+    def test_n_jobs_do_not_change_the_forest(self):
+        # trees grow in n_jobs threads; the draws are keyed per tree, so the forest is the same bit for bit
+        X, normals = _smooth_data(20_000, noise=0.1, seed=1)
+        kw = dict(n_trees=5, max_depth=10, min_samples_leaf=4, max_features=3, n_bins=32, seed=2)
+        threads = torch.get_num_threads()
+        forests = [VMFForest(n_jobs=jobs, **kw).fit(X, normals) for jobs in (1, 2, 5)]
+        assert torch.get_num_threads() == threads  # the process's settings are left alone
+        assert forests[0].depth_ == 10 and forests[0].child_.numel() > 2000
+        for other in forests[1:]:
+            for name in ("feature_", "threshold_", "child_", "mean_", "kappa_"):
+                assert torch.equal(getattr(forests[0], name), getattr(other, name)), name
+
+    def test_n_jobs_threads(self, monkeypatch):
+        # n_jobs = 1 grows every tree in the calling thread, n_jobs = 2 in (at most) two workers
+        X, normals = _smooth_data(3_000, seed=0)
+        seen = []
+
+        def spy(*args, **kwargs):
+            seen.append(threading.current_thread())
+            return _grow_trees(*args, **kwargs)
+
+        monkeypatch.setattr(forest_module, "_grow_trees", spy)
+        VMFForest(n_trees=4, max_depth=4, n_jobs=1).fit(X, normals)
+        assert seen == [threading.current_thread()] * 4
+        seen.clear()
+        VMFForest(n_trees=4, max_depth=4, n_jobs=2).fit(X, normals)
+        assert len(seen) == 4 and 1 <= len(set(seen)) <= 2
+        assert all(t.name.startswith("sfs_torch.forest") for t in seen)
+
+    def test_tree_depends_on_its_index_only(self):
+        # tree t draws its rows t-th and its features from keys rooted at t: the first
+        # 3 trees of a 5-tree forest are the trees of the 3-tree forest
+        X, normals = _smooth_data(8_000, noise=0.1, seed=3)
+        kw = dict(max_depth=8, min_samples_leaf=4, max_features=3, seed=5)
+        three = VMFForest(n_trees=3, **kw).fit(X, normals)
+        five = VMFForest(n_trees=5, **kw).fit(X, normals)
+        a, b = three.predict_leaves(X[:2000]), five.predict_leaves(X[:2000])
+        assert torch.equal(a.mean, b.mean[:, :3]) and torch.equal(a.kappa, b.kappa[:, :3])
+        assert not torch.equal(b.mean[:, 3], b.mean[:, 0])
+
+    def test_one_group_gives_the_same_trees(self):
+        # on a GPU all trees grow as one group: on the CPU that gives the per-tree forest
+        for dtype in (torch.float32, torch.float64):
+            X, normals = _smooth_data(10_000, noise=0.1, seed=7, dtype=dtype)
+            g = torch.Generator().manual_seed(0)
+            binned = _bin(X, _quantile_edges(X, 32, g))
+            rows = _sample_rows(len(X), 4, 0.9, g, X.device)
+            kw = dict(max_depth=9, min_samples_leaf=4, max_features=3, n_bins=32, seed=0)
+            per_tree = _grow(binned, normals, rows, n_jobs=2, **kw)
+            one = _assemble_levels([_grow_trees(binned, _row_streams(normals), rows, 0, index_dtype=torch.int32, **kw)])
+            assert per_tree["depth"] == one["depth"] == 9
+            for name in ("feature", "bin", "child", "count", "sum"):
+                assert torch.equal(per_tree[name], one[name]), name
 
     def test_threads_do_not_change_the_forest(self):
         X, normals = _smooth_data(20_000, noise=0.1, seed=0)
@@ -475,6 +560,9 @@ class TestVMFForest:
             VMFForest(n_bins=300).fit(X, normals)
         with pytest.raises(ValueError, match="max_features"):
             VMFForest(max_features=1.5).fit(X, normals)
+        for bad_jobs in (0, -1, 1.5, True):
+            with pytest.raises(ValueError, match="n_jobs must be None"):
+                VMFForest(n_jobs=bad_jobs).fit(X, normals)
         forest = VMFForest(n_trees=2, max_depth=3).fit(X, normals)
         with pytest.raises(ValueError, match="6 features"):
             forest.predict(X[:, :4])
