@@ -539,30 +539,12 @@ def estimate(
     integrate = cfg.integrate.method if integrate is None else integrate
     if integrate not in INTEGRATION_METHODS:
         raise ValueError(f"integrate must be one of {INTEGRATION_METHODS}, got {integrate!r}")
-
-    image_t = _as_image_tensor(image)
-    image_b, single = to_batch(image_t, "image", 3)
-    if image_b.shape[1] != 3:
-        raise ValueError(f"image must have 3 colour channels (3, H, W) or (B, 3, H, W), got {tuple(image_t.shape)}")
-    if not image_b.is_floating_point():
-        raise ValueError(f"image must be floating point linear RGB in [0, 1], got {image_b.dtype}")
-    check_finite(image_b, "image")
-    if bool((image_b < 0).any()) or bool((image_b > 1).any()):
-        raise ValueError("image must hold linear RGB values in [0, 1]; rescale it (or decode 8/16-bit integers first)")
-    image_b = image_b.float().contiguous()  # a numpy (H, W, 3) view gives the same sums as a tensor
-    mask_b = check_mask(_as_mask_tensor(mask, image_b, single))
-    check_same_size(image_b, "image", mask_b, "mask")
-    _warn_outside_assumptions(image_b, mask_b, principal_point)
-    known_lighting = None if lighting is None else _as_lighting(lighting, image_b.shape[0])
-    if known_lighting is not None:
-        shading = _hemisphere_shading(known_lighting)
-        _check_physical_lighting(shading)
-        _warn_lighting_scale(shading, image_b, mask_b)
+    image_b, mask_b, single = _checked_image_and_mask(image, mask, principal_point)
+    known_lighting = None if lighting is None else _checked_lighting(lighting, image_b, mask_b)
 
     timer = _Timer()
-    batch = image_b.shape[0]
     with timer("lighting"):
-        if lighting is None:
+        if known_lighting is None:
             sh = estimate_lighting(image_b, mask_b, focal=focal, principal_point=principal_point, config=cfg.reflectance_map,
                                    silhouette=cfg.silhouette)
             if cfg.valid_refit:
@@ -574,74 +556,43 @@ def estimate(
     with timer("test features"):
         feats = pixel_features(image_b, mask_b, cfg.features, cfg.texton, cfg.silhouette)
 
+    given = known_lighting is not None
     train_cfg = cfg
-    if lighting is not None:
+    if given:
         train_cfg = replace(cfg, training=replace(cfg.training, brightness_jitter=0.0, colour_jitter=0.0))
-    rounds = cfg.refine_rounds if lighting is None else 0
     sh = sh.clone()
     normals = torch.zeros_like(image_b)
     confidence = torch.zeros_like(mask_b, dtype=image_b.dtype)
     candidates = []
-    for b in range(batch):
-        m = mask_b[b, 0]
+    for b in range(image_b.shape[0]):
+        image_1, mask_1, m = image_b[b : b + 1], mask_b[b : b + 1], mask_b[b, 0]
         rows = feats[b].permute(1, 2, 0)[m]
-        centroid = centroid_rotation(mask_b[b : b + 1], focal, principal_point)[0] if focal is not None else None
-        image_cfg = _with_image_noise(train_cfg, image_b[b : b + 1], mask_b[b : b + 1])
-        best = None  # (residual, lighting, normals, confidence, forest) of the best round so far
-        for round_ in range(rounds + 1):
-            if round_ > 0:
-                with timer("lighting refinement"):
-                    sh[b] = refit_lighting(image_b[b : b + 1], mask_b[b : b + 1], normals[b : b + 1],
-                                           valid=cfg.valid_refit)[0]
-            # Perspective: train in the object's own orthographic frame (the lighting
-            # seen from its centroid), then rotate the predictions to the camera frame.
-            local_sh = sh[b] if centroid is None else rotate_sh(sh[b], centroid.T.to(sh.dtype))
-            forest = _trained_forest(local_sh, db, image_cfg, timer, given=lighting is not None)
-            with timer("predict"):
-                pred: VMF = forest.predict(rows)
-            normals[b] = 0
-            normals[b].permute(1, 2, 0)[m] = pred.mean.to(normals.dtype)
-            confidence[b, 0][m] = pred.kappa.to(confidence.dtype)
-            if centroid is not None:
-                normals[b : b + 1] = _to_camera(normals[b : b + 1], centroid, focal, principal_point, cfg.normal_rotation)
-            if rounds == 0:
-                continue
-            residual = float(photometric_residual(normals[b : b + 1], sh[b : b + 1], image_b[b : b + 1], mask_b[b : b + 1])[0])
-            if best is not None and residual >= best[0]:
-                # a refit whose round explains the image worse than the round before is dropped
-                _, sh[b], normals[b], confidence[b], forest = best
-                break
-            best = (residual, sh[b].clone(), normals[b].clone(), confidence[b].clone(), forest)
+        centroid = centroid_rotation(mask_1, focal, principal_point)[0] if focal is not None else None
+        found = _forest_rounds(image_1, mask_1, rows, sh[b], db, _with_image_noise(train_cfg, image_1, mask_1), timer,
+                               given=given, centroid=centroid, focal=focal, principal_point=principal_point)
+        normals[b], confidence[b], sh[b] = found.normals[0], found.confidence[0], found.lighting
         prior = None
         if cfg.keep_prior:
             with timer("prior check"):
-                prior = _better_prior(image_b[b : b + 1], mask_b[b : b + 1], normals[b : b + 1], sh[b : b + 1],
-                                      focal, principal_point, refit=lighting is None, valid=cfg.valid_refit,
-                                      forest_score=None if best is None else best[0], silhouette=cfg.silhouette)
+                prior = _better_prior(image_1, mask_1, normals[b : b + 1], sh[b : b + 1], focal, principal_point,
+                                      refit=not given, valid=cfg.valid_refit, forest_score=found.residual,
+                                      silhouette=cfg.silhouette)
             if prior is not None:
                 normals[b], sh[b] = prior[0][0], prior[1][0]
                 # the prior carries no per-pixel confidence: the forest's median everywhere
                 confidence[b, 0][m] = confidence[b, 0][m].median()
-        if integrate == "conv" and prior is not None:
-            candidates.append(normals[b : b + 1].clone())
-        elif integrate == "conv":
-            leaves = forest.predict_leaves(rows)
-            generator = torch.Generator(device=rows.device).manual_seed(cfg.training.seed)
-            samples = sample_vmf(leaves, cfg.conv_samples_per_tree, generator).flatten(1, 2)  # (N, S, 3)
-            cand = torch.zeros(samples.shape[1], 3, *m.shape, dtype=normals.dtype, device=normals.device)
-            cand.permute(2, 3, 0, 1)[m] = samples.to(cand.dtype)
-            if centroid is not None:
-                cand = _to_camera(cand, centroid, focal, principal_point, cfg.normal_rotation)
-            candidates.append(cand)
+        if integrate == "conv":
+            candidates.append(normals[b : b + 1].clone() if prior is not None else
+                              _conv_candidates(found.forest, rows, m, cfg, centroid, focal, principal_point))
     normals = normals * mask_b
 
     depth = None
-    if cfg.refine.when == "always" or (cfg.refine.when == "known" and lighting is not None):
+    if cfg.refine.when == "always" or (cfg.refine.when == "known" and given):
         with timer("photometric refinement"):
             refined = refine_shape_and_lighting(
                 image_b, mask_b, normals, sh, confidence=confidence, focal=focal, principal_point=principal_point,
                 # a given lighting is trusted exactly, never refined
-                config=replace(cfg.refine, optimise_lighting=cfg.refine.optimise_lighting and lighting is None),
+                config=replace(cfg.refine, optimise_lighting=cfg.refine.optimise_lighting and not given),
                 silhouette=cfg.silhouette,
             )
         depth, normals, sh = refined.depth, refined.normals, refined.lighting
@@ -660,6 +611,100 @@ def estimate(
         normals=out(normals), confidence=out(confidence), lighting=out(sh), depth=out(depth), mask=out(mask_b),
         timings=dict(timer.seconds),
     )
+
+
+def _checked_image_and_mask(image: Any, mask: Any, principal_point: Optional[tuple]) -> tuple:
+    """``(image (B, 3, H, W) float32, mask (B, 1, H, W) bool, single)`` from :func:`estimate`'s
+    arguments, checked (shape, dtype, range, finiteness, size), with the warnings for input
+    outside the method's assumptions; ``single``: the input had no batch axis."""
+    image_t = _as_image_tensor(image)
+    image_b, single = to_batch(image_t, "image", 3)
+    if image_b.shape[1] != 3:
+        raise ValueError(f"image must have 3 colour channels (3, H, W) or (B, 3, H, W), got {tuple(image_t.shape)}")
+    if not image_b.is_floating_point():
+        raise ValueError(f"image must be floating point linear RGB in [0, 1], got {image_b.dtype}")
+    check_finite(image_b, "image")
+    if bool((image_b < 0).any()) or bool((image_b > 1).any()):
+        raise ValueError("image must hold linear RGB values in [0, 1]; rescale it (or decode 8/16-bit integers first)")
+    image_b = image_b.float().contiguous()  # a numpy (H, W, 3) view gives the same sums as a tensor
+    mask_b = check_mask(_as_mask_tensor(mask, image_b, single))
+    check_same_size(image_b, "image", mask_b, "mask")
+    _warn_outside_assumptions(image_b, mask_b, principal_point)
+    return image_b, mask_b, single
+
+
+def _checked_lighting(lighting: Any, image: Tensor, mask: Tensor) -> Tensor:
+    """A given lighting as ``(B, 3, 9)``, rejected when it is not physical, with a warning when
+    its scale does not fit the image."""
+    sh = _as_lighting(lighting, image.shape[0])
+    shading = _hemisphere_shading(sh)
+    _check_physical_lighting(shading)
+    _warn_lighting_scale(shading, image, mask)
+    return sh
+
+
+@dataclass(frozen=True)
+class _ForestRounds:
+    """What :func:`_forest_rounds` keeps: ``normals (1, 3, H, W)`` camera frame,
+    ``confidence (1, 1, H, W)``, the ``lighting (3, 9)`` the forest was trained for, the
+    forest, and the pair's photometric residual (``None`` without refit rounds)."""
+
+    normals: Tensor
+    confidence: Tensor
+    lighting: Tensor
+    forest: VMFForest
+    residual: Optional[float]
+
+
+def _forest_rounds(image: Tensor, mask: Tensor, rows: Tensor, sh: Tensor, db: GeometryDatabase, cfg: PipelineConfig,
+                   timer: _Timer, *, given: bool, centroid: Optional[Tensor], focal: Optional[float],
+                   principal_point: Optional[tuple]) -> _ForestRounds:
+    """Train a forest for ``sh`` and predict ``rows (N, F)``, the features of the object pixels of
+    one image ``(1, 3, H, W)``; for an estimated lighting then ``cfg.refine_rounds`` times refit the
+    lighting to the image from those normals and predict again, dropping a round whose normals
+    explain the image worse than the round before."""
+    rounds = 0 if given else cfg.refine_rounds
+    m = mask[0, 0]
+    normals = torch.zeros_like(image)
+    confidence = torch.zeros_like(mask, dtype=image.dtype)
+    best: Optional[_ForestRounds] = None
+    for round_ in range(rounds + 1):
+        if round_ > 0:
+            with timer("lighting refinement"):
+                sh = refit_lighting(image, mask, normals, valid=cfg.valid_refit)[0].to(sh.dtype)
+        # Perspective: train in the object's own orthographic frame (the lighting seen from
+        # its centroid), then rotate the predictions to the camera frame.
+        local_sh = sh if centroid is None else rotate_sh(sh, centroid.T.to(sh.dtype))
+        forest = _trained_forest(local_sh, db, cfg, timer, given=given)
+        with timer("predict"):
+            pred: VMF = forest.predict(rows)
+        normals = torch.zeros_like(image)
+        normals[0].permute(1, 2, 0)[m] = pred.mean.to(normals.dtype)
+        confidence = torch.zeros_like(confidence)
+        confidence[0, 0][m] = pred.kappa.to(confidence.dtype)
+        if centroid is not None:
+            normals = _to_camera(normals, centroid, focal, principal_point, cfg.normal_rotation)
+        if rounds == 0:
+            return _ForestRounds(normals, confidence, sh, forest, None)
+        residual = float(photometric_residual(normals, sh[None], image, mask)[0])
+        if best is not None and residual >= best.residual:
+            return best
+        best = _ForestRounds(normals, confidence, sh, forest, residual)
+    return best
+
+
+def _conv_candidates(forest: VMFForest, rows: Tensor, m: Tensor, cfg: PipelineConfig, centroid: Optional[Tensor],
+                     focal: Optional[float], principal_point: Optional[tuple]) -> Tensor:
+    """``(S, 3, H, W)`` candidate normal fields for ``integrate="conv"``: ``cfg.conv_samples_per_tree``
+    samples from each tree's leaf of every object pixel (mask ``m (H, W)``), camera frame."""
+    leaves = forest.predict_leaves(rows)
+    generator = torch.Generator(device=rows.device).manual_seed(cfg.training.seed)
+    samples = sample_vmf(leaves, cfg.conv_samples_per_tree, generator).flatten(1, 2)  # (N, S, 3)
+    cand = torch.zeros(samples.shape[1], 3, *m.shape, dtype=rows.dtype, device=rows.device)
+    cand.permute(2, 3, 0, 1)[m] = samples.to(cand.dtype)
+    if centroid is not None:
+        cand = _to_camera(cand, centroid, focal, principal_point, cfg.normal_rotation)
+    return cand
 
 
 def _check_database(database: Any, cfg: DatabaseConfig) -> None:
