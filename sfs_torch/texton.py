@@ -111,7 +111,10 @@ def _check_padding(padding: str) -> None:
 
 
 def texton_filter_bank(
-    kernel_size: int = 5, *, device: Optional[torch.device] = None, dtype: torch.dtype = torch.float32
+    kernel_size: int = TextonConfig.kernel_size,
+    *,
+    device: Optional[torch.device] = None,
+    dtype: torch.dtype = torch.float32,
 ) -> Tensor:
     r"""The 17 texton filters as ``conv2d`` weights for a Lab image.
 
@@ -211,7 +214,7 @@ def linear_rgb_to_lab(image: Tensor) -> Tensor:
 
 
 def texton_features(
-    image: Tensor, mask: Optional[Tensor] = None, *, kernel_size: int = 5, padding: str = "same"
+    image: Tensor, mask: Optional[Tensor] = None, *, kernel_size: int = TextonConfig.kernel_size, padding: str = "same"
 ) -> Tensor:
     r"""Texton filter responses of a linear RGB image.
 
