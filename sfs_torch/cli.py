@@ -41,7 +41,7 @@ from .lighting import natural_lightings, render_sh, render_sphere  # noqa: E402
 from .metrics import lmse, normal_metrics  # noqa: E402
 from .novel_view import NovelViewConfig, render_novel_view  # noqa: E402
 from .pipeline import Estimate, PipelineConfig, TrainingConfig, estimate, moved_option_hint, resolve_config  # noqa: E402
-from .preview import RENDERERS, RendererChoice, _check_name, choose_renderer, gl_context  # noqa: E402
+from .preview import RendererChoice, choose_renderer, gl_context, renderer_name  # noqa: E402
 from .reflectance_map import ReflectanceMapConfig  # noqa: E402
 from .rendering import random_view_rotations, render_normals  # noqa: E402
 from .silhouette import SilhouetteConfig, coarse_normals  # noqa: E402
@@ -179,19 +179,10 @@ def _novel_view(cfg: DictConfig, pipeline_cfg: PipelineConfig) -> _NovelView:
         raise ValueError(f"novel_view.azimuth_deg and elevation_deg must be finite, got {azimuth}, {elevation}")
     if not (isinstance(resolution, int) and not isinstance(resolution, bool) and resolution > 0):
         raise ValueError(f"novel_view.resolution must be a positive integer, got {resolution!r}")
-    try:
-        name = _check_name(view.renderer)
-    except ValueError:
-        raise ValueError(f"novel_view.renderer must be one of {', '.join(RENDERERS)}, got {view.renderer!r}") from None
+    name = renderer_name(view.renderer, "novel_view.renderer")
     if pipeline_cfg.integrate.method is None:  # no depth map, no novel view: nothing to draw
         return _NovelView(None, azimuth, elevation, resolution)
-    context = None if name == "embree" else gl_context()
-    if name == "pyrender" and not context.available:
-        raise ValueError(
-            f"novel_view.renderer=pyrender needs an offscreen OpenGL context, but {context.reason}; use "
-            "novel_view.renderer=auto (falls back to the Embree ray caster) or embree (docs/rendering.md)"
-        )
-    choice = choose_renderer(name, context)
+    choice = choose_renderer(name, None if name == "embree" else gl_context(), key="novel_view.renderer")
     log.info("novel view renderer: %s", choice.reason)
     return _NovelView(choice, azimuth, elevation, resolution)
 

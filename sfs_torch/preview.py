@@ -47,6 +47,7 @@ __all__ = [
     "RasterNormals",
     "ShadedView",
     "gl_context",
+    "renderer_name",
     "choose_renderer",
     "rasterize_normals",
     "render_shaded",
@@ -211,13 +212,15 @@ def gl_context() -> GLContext:
         return _STATE["context"]
 
 
-def _check_name(requested: Any) -> str:
+def renderer_name(requested: Any, key: str = "renderer") -> str:
+    """``requested`` as one of :data:`RENDERERS`, or a ``ValueError`` naming ``key`` (the option it came from)."""
     if not isinstance(requested, str) or requested.lower() not in RENDERERS:
-        raise ValueError(f"renderer must be one of {', '.join(RENDERERS)}, got {requested!r}")
+        raise ValueError(f"{key} must be one of {', '.join(RENDERERS)}, got {requested!r}")
     return requested.lower()
 
 
-def choose_renderer(requested: str = "auto", context: Optional[GLContext] = None) -> RendererChoice:
+def choose_renderer(requested: str = "auto", context: Optional[GLContext] = None, *,
+                    key: str = "renderer") -> RendererChoice:
     """Resolve a renderer request.
 
     ``"embree"`` is always available; ``"pyrender"`` needs a context; ``"auto"`` takes pyrender
@@ -227,6 +230,8 @@ def choose_renderer(requested: str = "auto", context: Optional[GLContext] = None
         requested: one of :data:`RENDERERS` (case-insensitive).
         context: the OpenGL status to decide on; ``None`` asks :func:`gl_context` (only for
             ``"auto"`` and ``"pyrender"``: it makes the context, ~1 s the first time).
+        key: the option ``requested`` came from, named in the errors (``novel_view.renderer``
+            in the CLI).
 
     Returns:
         :class:`RendererChoice`.
@@ -238,7 +243,7 @@ def choose_renderer(requested: str = "auto", context: Optional[GLContext] = None
         >>> choose_renderer("auto", GLContext(False, reason="pyrender is not installed")).name
         'embree'
     """
-    name = _check_name(requested)
+    name = renderer_name(requested, key)
     if name == "embree":
         return RendererChoice("embree", name, "embree: the Embree ray caster, as requested")
     context = gl_context() if context is None else context
@@ -246,8 +251,8 @@ def choose_renderer(requested: str = "auto", context: Optional[GLContext] = None
         return RendererChoice("pyrender", name, f"pyrender: OpenGL on {context.platform} ({context.device})")
     if name == "pyrender":
         raise ValueError(
-            f"renderer 'pyrender' needs an offscreen OpenGL context, but {context.reason}; "
-            "use renderer 'auto' (falls back to the ray caster) or 'embree' (docs/rendering.md)"
+            f"{key}=pyrender needs an offscreen OpenGL context, but {context.reason}; use {key}=auto "
+            "(falls back to the Embree ray caster) or embree (docs/rendering.md)"
         )
     return RendererChoice("embree", name, f"embree: the Embree ray caster; pyrender unavailable ({context.reason})")
 

@@ -62,7 +62,7 @@ class TestChooseRenderer:
         assert choice.name == "pyrender" and "egl" in choice.reason and "llvmpipe" in choice.reason
 
     def test_pyrender_without_a_context_is_one_clear_error(self):
-        with pytest.raises(ValueError, match="'pyrender' needs an offscreen OpenGL context, but no OpenGL context on egl"):
+        with pytest.raises(ValueError, match="renderer=pyrender needs an offscreen OpenGL context, but no OpenGL context on egl"):
             choose_renderer("pyrender", NO_CONTEXT)
 
     @pytest.mark.parametrize("value", ["vulkan", "", None, 3])
