@@ -180,7 +180,7 @@ def _novel_view(cfg: DictConfig, pipeline_cfg: PipelineConfig) -> _NovelView:
     if not (isinstance(resolution, int) and not isinstance(resolution, bool) and resolution > 0):
         raise ValueError(f"novel_view.resolution must be a positive integer, got {resolution!r}")
     name = renderer_name(view.renderer, "novel_view.renderer")
-    if pipeline_cfg.integrate.method is None:  # no depth map, no novel view: nothing to draw
+    if pipeline_cfg.integrate.method == "none":  # no depth map, no novel view: nothing to draw
         return _NovelView(None, azimuth, elevation, resolution)
     choice = choose_renderer(name, None if name == "embree" else gl_context(), key="novel_view.renderer")
     log.info("novel view renderer: %s", choice.reason)
@@ -479,7 +479,7 @@ def _batch_folders(cfg: DictConfig, out: Path) -> List[Path]:
 def _expected_outputs(pipeline_cfg: PipelineConfig, mesh_formats: Tuple[str, ...]) -> Tuple[str, ...]:
     """The files a run with these options writes for every item."""
     names = list(REQUIRED_OUTPUTS)
-    if pipeline_cfg.integrate.method is not None:
+    if pipeline_cfg.integrate.method != "none":
         names += ["depth.npy", "depth.png", "depth.json", "novel_view.png", *(f"mesh.{kind}" for kind in mesh_formats)]
     return tuple(names)
 

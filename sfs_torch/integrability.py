@@ -63,10 +63,13 @@ METHODS = ("l2", "l1", "conv")
 class IntegrabilityConfig:
     """Options of :class:`Integrator` (and of :func:`integrate_normals`).
 
+    ``hydra.utils.instantiate(IntegrabilityConfig())`` builds an L2 :class:`Integrator`.
+    Whether the pipeline integrates at all is its ``integrate.method`` (``"none"``, its
+    default, or one of these solvers; :class:`~sfs_torch.pipeline.PipelineConfig`).
+
     Attributes:
-        method: ``None`` (no refinement: the pipeline keeps the forest's per-pixel
-            normals), ``"l2"`` (least squares), ``"l1"`` (robust, IRLS) or ``"conv"`` (convex
-            combination of candidate normals).
+        method: the solver: ``"l2"`` (least squares), ``"l1"`` (robust, IRLS) or ``"conv"``
+            (convex combination of candidate normals).
         max_iter: conjugate-gradient iterations per linear solve.
         tol: relative residual at which a linear solve stops.
         min_nz: smallest cosine between a normal and the viewing direction; steeper
@@ -80,7 +83,7 @@ class IntegrabilityConfig:
     """
 
     _target_: str = "sfs_torch.integrability.Integrator"
-    method: Optional[str] = None
+    method: str = "l2"
     max_iter: int = 500
     tol: float = 1e-5
     min_nz: float = 0.05
@@ -437,7 +440,7 @@ def integrate_normals(
     normals: Tensor,
     mask: Tensor,
     *,
-    method: str = "l2",
+    method: str = IntegrabilityConfig.method,
     weights: Optional[Tensor] = None,
     focal: Optional[float] = None,
     principal_point: Optional[Sequence[float]] = None,
@@ -778,7 +781,7 @@ class Integrator(nn.Module):
 
     def __init__(
         self,
-        method: str = "l2",
+        method: str = IntegrabilityConfig.method,
         max_iter: int = IntegrabilityConfig.max_iter,
         tol: float = IntegrabilityConfig.tol,
         min_nz: float = IntegrabilityConfig.min_nz,
@@ -790,10 +793,8 @@ class Integrator(nn.Module):
         principal_point: Optional[Sequence[float]] = None,
     ):
         super().__init__()
-        if method is None:
-            raise ValueError(f"method=None means no integration (the pipeline's default); an Integrator needs one of "
-                             f"{METHODS}")
         if method not in METHODS:
+            # "none" is the pipeline's choice not to integrate (integrate=none): it builds no Integrator
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         self.method, self.max_iter, self.tol, self.min_nz = method, max_iter, tol, min_nz
         self.l1_iter, self.l1_delta = l1_iter, l1_delta

@@ -119,7 +119,7 @@ class ShapeFromShading(nn.Module):
                 frame; skips the reflectance-map estimate.
             focal: focal length in pixels (perspective); default ``config.camera.focal``.
             principal_point: ``(cx, cy)`` in pixels; default ``config.camera.principal_point``.
-            integrate: ``None``, ``"l2"``, ``"l1"`` or ``"conv"``; default
+            integrate: ``"none"``, ``"l2"``, ``"l1"`` or ``"conv"``; ``None``:
                 ``config.integrate.method``.
 
         Returns:

@@ -41,7 +41,7 @@ from .forest_cache import CACHE_POLICIES, evict_forests, forest_path, load_fores
 from .geometry_db import DatabaseConfig, GeometryDatabase, load_database
 from .geometry_db import _check_config as _check_database_config
 from .image_formation import estimate_noise_sigma
-from .integrability import IntegrabilityConfig, Integrator
+from .integrability import METHODS, IntegrabilityConfig, Integrator
 from .lighting import fit_sh_vectors, render_sh, rotate_sh, sh_basis_vectors
 from .reflectance_map import (
     PROFILES,
@@ -60,7 +60,8 @@ __all__ = ["FeatureConfig", "TrainingConfig", "PipelineConfig", "Estimate", "est
 
 log = logging.getLogger(__name__)
 
-INTEGRATION_METHODS = (None, "l2", "l1", "conv")
+# integrate.method: "none" (the pipeline does not integrate) or a solver of IntegrabilityConfig
+INTEGRATION_METHODS = ("none", *METHODS)
 NORMAL_ROTATIONS = ("centroid", "pixel")
 # options that were in a stage's config until they moved to the pipeline's own: old key -> new key
 MOVED_OPTIONS = {
@@ -126,8 +127,14 @@ class PipelineConfig:
         silhouette: the silhouette features of the test image, the lighting estimate, the
             prior check and the refinement's rim
             (:class:`~sfs_torch.silhouette.SilhouetteConfig`).
-        texton, reflectance_map, features, training, forest, integrate, camera, refine:
-            the other stages' options.
+        texton, reflectance_map, features, training, forest, camera, refine: the other
+            stages' options.
+        integrate: whether and how the normals are integrated into a surface (``depth``):
+            ``integrate.method`` is ``"none"`` (the default: the per-pixel normals are
+            kept) or a solver, ``"l2"``, ``"l1"`` or ``"conv"``, built from these options
+            (:class:`~sfs_torch.integrability.IntegrabilityConfig`, whose own default is
+            ``"l2"``); the other keys are the solver's, checked always and unused with
+            ``"none"``. ``estimate(..., integrate=...)`` chooses the method for one call.
         refine_rounds: when the lighting is estimated, this many times it is refitted to
             the image from the forest's normals (:func:`~sfs_torch.reflectance_map.refit_lighting`)
             and a forest trained for it predicts again; a round whose normals explain the
@@ -155,7 +162,7 @@ class PipelineConfig:
     features: FeatureConfig = field(default_factory=FeatureConfig)
     training: TrainingConfig = field(default_factory=TrainingConfig)
     forest: ForestConfig = field(default_factory=ForestConfig)
-    integrate: IntegrabilityConfig = field(default_factory=IntegrabilityConfig)
+    integrate: IntegrabilityConfig = field(default_factory=lambda: IntegrabilityConfig(method="none"))
     camera: CameraConfig = field(default_factory=CameraConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
     refine_rounds: int = 1
@@ -228,7 +235,8 @@ def resolve_config(config: Union[None, PipelineConfig, DictConfig, Dict[str, Any
 def moved_option_hint(config: Any, prefix: str = "") -> Optional[str]:
     """``"<old> is now <new>, ..."`` for the first key of :data:`MOVED_OPTIONS` that a (nested) dict,
     omegaconf config or ``key=value`` override string uses under its old name (``prefix`` in front
-    of both, e.g. ``"pipeline."`` for ``sfs-torch-eval``); else ``None``."""
+    of both, e.g. ``"pipeline."`` for ``sfs-torch-eval``), or for the old ``integrate.method=None``
+    (now ``"none"``); else ``None``."""
     for old, new in MOVED_OPTIONS.items():
         group, key = old.split(".")
         if isinstance(config, str):
@@ -238,6 +246,15 @@ def moved_option_hint(config: Any, prefix: str = "") -> Optional[str]:
             used = isinstance(node, (dict, DictConfig)) and key in node
         if used:
             return f"{prefix}{old} is now {prefix}{new}, an option of the pipeline itself, not of the {group} stage"
+    if isinstance(config, str):
+        old_none = config.lstrip("+~") == f"{prefix}integrate.method=null"
+    else:
+        node = config.get("integrate") if isinstance(config, (dict, DictConfig)) else getattr(config, "integrate", None)
+        method = node.get("method", "") if isinstance(node, (dict, DictConfig)) else getattr(node, "method", "")
+        old_none = method is None
+    if old_none:
+        return (f"{prefix}integrate.method=None is now {prefix}integrate.method='none' ({prefix}integrate=none): "
+                "the pipeline does not integrate")
     return None
 
 
@@ -456,7 +473,8 @@ def _forest(cfg: ForestConfig, device: Optional[torch.device] = None) -> VMFFore
 
 def _integrator(cfg: IntegrabilityConfig, method: str, focal: Optional[float],
                 principal_point: Optional[tuple]) -> Integrator:
-    """The integrability module that ``cfg`` describes (its ``_target_``, instantiated) for ``method``."""
+    """The integrability module that ``cfg`` describes (its ``_target_``, instantiated) with the solver
+    ``method`` (``cfg.method`` or :func:`estimate`'s ``integrate``; never ``"none"``)."""
     from hydra.utils import instantiate
 
     return instantiate(cfg, method=method, focal=focal, principal_point=principal_point, _convert_="all")
@@ -510,7 +528,8 @@ def estimate(
         principal_point: ``(cx, cy)`` in pixels; default the image centre.
         lighting: known SH lighting :math:`(3, 9)` / :math:`(B, 3, 9)` in the camera
             frame; skips the reflectance-map estimate.
-        integrate: ``None``, ``"l2"``, ``"l1"`` or ``"conv"`` (or ``config.integrate.method``).
+        integrate: ``"none"``, ``"l2"``, ``"l1"`` or ``"conv"`` for this call; ``None``:
+            ``config.integrate.method`` (whose default is ``"none"``).
         config: partial configuration merged onto the defaults (see ``conf/``).
         progress: show progress bars (database build).
         database: the example-geometry database of ``config.database``, already loaded
@@ -538,7 +557,8 @@ def estimate(
     )
     integrate = cfg.integrate.method if integrate is None else integrate
     if integrate not in INTEGRATION_METHODS:
-        raise ValueError(f"integrate must be one of {INTEGRATION_METHODS}, got {integrate!r}")
+        raise ValueError(f"integrate must be one of {INTEGRATION_METHODS} (or None: config.integrate.method), "
+                         f"got {integrate!r}")
     image_b, mask_b, single = _checked_image_and_mask(image, mask, principal_point)
     known_lighting = None if lighting is None else _checked_lighting(lighting, image_b, mask_b)
 
@@ -596,7 +616,7 @@ def estimate(
                 silhouette=cfg.silhouette,
             )
         depth, normals, sh = refined.depth, refined.normals, refined.lighting
-    if integrate is not None:
+    if integrate != "none":
         with timer(f"integrate ({integrate})"):
             integrator = _integrator(cfg.integrate, integrate, focal, principal_point)
             surface = integrator(torch.stack(candidates) if integrate == "conv" else normals, mask_b, weights=confidence)

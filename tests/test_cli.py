@@ -184,7 +184,8 @@ class TestConfigCheckedAtEntry:
     CASES = [
         (["refine_rounds=-1"], "refine_rounds must be an integer >= 0, got -1"),
         (["normal_rotation=pxl"], "normal_rotation must be one of ('centroid', 'pixel'), got 'pxl'"),
-        (["integrate.method=l3"], "integrate.method must be one of"),
+        (["integrate.method=l3"], "integrate.method must be one of ('none', 'l2', 'l1', 'conv')"),
+        (["integrate.max_iter=0"], "integrate.max_iter must be an integer >= 1, got 0"),  # also with none
         (["forest.n_trees=0"], "forest.n_trees must be an int >= 1, got 0"),
         (["silhouette.depth_layer_ratio=0.5"], "silhouette.depth_layer_ratio must be > 1"),
     ]
@@ -220,10 +221,14 @@ class TestConfigCheckedAtEntry:
         assert "normal_rotation must be one of ('centroid', 'pixel'), got 'pxl'" in result.stderr + result.stdout
         assert "Traceback" not in result.stderr
 
-    def test_a_moved_key_says_where_it_went(self, tmp_path):
-        result = run_cli([*TINY, "reflectance_map.refine_rounds=0", "out=x"], tmp_path)
+    @pytest.mark.parametrize("old, hint", [
+        ("reflectance_map.refine_rounds=0", "reflectance_map.refine_rounds is now refine_rounds"),
+        ("integrate.method=null", "integrate.method=None is now integrate.method='none' (integrate=none)"),
+    ])
+    def test_a_moved_key_says_where_it_went(self, tmp_path, old, hint):
+        result = run_cli([*TINY, old, "out=x"], tmp_path)
         assert result.returncode == 2
-        assert "reflectance_map.refine_rounds is now refine_rounds" in result.stderr
+        assert hint in result.stderr
         assert "Traceback" not in result.stderr and not (tmp_path / "x").exists()
 
 

@@ -38,7 +38,7 @@ EXPECTED = {
     ("features", "rgb"): FeatureConfig(rgb=True, silhouette=False, texton=False),
     ("features", "rgb_silh"): FeatureConfig(rgb=True, silhouette=True, texton=False),
     ("features", "rgb_tex"): FeatureConfig(rgb=True, silhouette=False, texton=True),
-    ("integrate", "none"): IntegrabilityConfig(method=None),
+    ("integrate", "none"): IntegrabilityConfig(method="none"),
     ("integrate", "l2"): IntegrabilityConfig(method="l2"),
     ("integrate", "l1"): IntegrabilityConfig(method="l1"),
     ("integrate", "conv"): IntegrabilityConfig(method="conv"),
@@ -118,12 +118,31 @@ class TestConfigs:
         assert forest.min_samples_leaf == ForestConfig().min_samples_leaf
         integrator = instantiate(cfg.integrate)
         assert isinstance(integrator, Integrator) and (integrator.method, integrator.l1_iter) == ("l1", 4)
-        with pytest.raises(Exception, match="method=None means no integration"):
-            instantiate(compose_app().integrate)  # integrate=none: the pipeline integrates nothing
+        # integrate=none is the pipeline's choice not to integrate, not a solver: it builds no Integrator
+        with pytest.raises(Exception, match=r"method must be one of \('l2', 'l1', 'conv'\), got 'none'"):
+            instantiate(compose_app().integrate)
+
+    @pytest.mark.parametrize("option", ["none", "l2", "l1", "conv"])
+    def test_integrate_options_with_solver_options(self, option):
+        # a sweep like `integrate=none,l2,l1,conv integrate.max_iter=50` composes in every job:
+        # the method is the option's, the solver options the override's (unused with none)
+        pipeline = _pipeline_config(compose_app([f"integrate={option}", "integrate.max_iter=50", "integrate.l1_iter=3"]))
+        assert pipeline.integrate == IntegrabilityConfig(method=option, max_iter=50, l1_iter=3)
+        alone = _pipeline_config(compose_app(["integrate.max_iter=50"]))  # the default method, none
+        assert alone.integrate == IntegrabilityConfig(method="none", max_iter=50)
+
+    @pytest.mark.parametrize("override, match", [
+        ("integrate=l3", "integrate"),  # no such option file
+        ("integrate.method=l3", r"^integrate.method must be one of \('none', 'l2', 'l1', 'conv'\)"),
+        ("integrate.max_iter=0", r"^integrate.max_iter must be an integer >= 1, got 0"),
+    ])
+    def test_bad_integrate_values_name_the_key(self, override, match):
+        with pytest.raises((ConfigCompositionException, ValueError), match=match):
+            _pipeline_config(compose_app([override]))
 
     def test_experiment_composes(self):
         cfg = compose_app(["+experiment=ablation"], hydra_config=True)
-        assert cfg.integrate.method is None
+        assert cfg.integrate.method == "none"
         assert cfg.hydra.sweeper.params.features == "rgb,rgb_silh,rgb_tex,all"
 
     def test_typo_is_rejected(self):

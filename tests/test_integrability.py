@@ -212,8 +212,28 @@ class TestIntegrateL2:
         module = instantiate(IntegrabilityConfig(method="l1", l1_iter=3))
         assert isinstance(module, Integrator) and module.l1_iter == 3
         torch.testing.assert_close(module(n, mask).depth, integrate_normals(n, mask, method="l1", l1_iter=3).depth)
-        with pytest.raises(Exception, match="method=None means no integration"):
-            instantiate(IntegrabilityConfig())
+
+    def test_instantiate_the_default_config(self):
+        # the stage config's defaults build a working solver: L2 with the default options
+        from hydra.utils import instantiate
+
+        z, n, mask = _batch(*sphere_cap())
+        module = instantiate(IntegrabilityConfig())
+        assert isinstance(module, Integrator) and module.method == "l2"
+        assert {k: getattr(module, k) for k in vars(IntegrabilityConfig()) if k != "_target_"} == {
+            k: v for k, v in vars(IntegrabilityConfig()).items() if k != "_target_"}
+        out = module(n, mask)
+        assert torch.equal(out.depth, integrate_normals(n, mask).depth)
+        # the sphere comes back (test_exact_recovery's tolerance, at the default solver tolerance)
+        assert depth_rmse(out.depth, z[0, 0], mask) < 0.02
+        assert abs(float(out.depth[mask].mean())) < 1e-9 and float(out.depth[~mask].abs().max()) == 0.0
+        assert float(angular_error(out.normals, n, mask).max()) < 0.5  # degrees; 0.22 here
+
+    @pytest.mark.parametrize("method", ["none", None, "L2"])
+    def test_only_solvers(self, method):
+        # "none" is the pipeline's integrate=none: it builds no Integrator
+        with pytest.raises(ValueError, match=r"^method must be one of \('l2', 'l1', 'conv'\)"):
+            Integrator(method=method)
 
 
 class TestMultigrid:

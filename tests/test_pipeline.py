@@ -329,6 +329,10 @@ BAD_CONFIGS = [
     ({"conv_samples_per_tree": 0}, r"^conv_samples_per_tree must be an integer >= 1"),
     ({"integrate": {"method": "l3"}}, r"^integrate.method must be one of .*got 'l3'"),
     ({"integrate": {"tol": 0.0}}, r"^integrate.tol must be > 0"),
+    # the solver's options are checked with integrate.method="none" (the default) too
+    ({"integrate": {"max_iter": 0}}, r"^integrate.max_iter must be an integer >= 1, got 0"),
+    # the old spelling of "no integration" says the new one
+    ({"integrate": {"method": None}}, r"integrate.method=None is now integrate.method='none' \(integrate=none\)"),
     ({"forest": {"n_trees": 0}}, r"^forest.n_trees must be an int >= 1, got 0"),
     ({"forest": {"max_features": 0}}, r"^forest.max_features must be >= 1"),
     ({"forest": {"_target_": "sfs_torch.forest.NoSuchForest"}}, r"^forest._target_='sfs_torch.forest.NoSuchForest' could not"),
@@ -367,6 +371,12 @@ class TestConfigCheckedAtEntry:
         _, mask, _, image = scene
         with pytest.raises(ValueError, match=match):
             sfs_torch.estimate(image, mask, config={**TINY, **config}, progress=False)
+
+    @pytest.mark.parametrize("integrate", ["l3", "None", ""])
+    def test_estimate_integrate_argument(self, scene, no_work, integrate):
+        _, mask, _, image = scene
+        with pytest.raises(ValueError, match=rf"^integrate must be one of \('none', 'l2', 'l1', 'conv'\).*got '{integrate}'"):
+            sfs_torch.estimate(image, mask, integrate=integrate, config=TINY, progress=False)
 
     @pytest.mark.parametrize("config, match", BAD_CONFIGS[:6], ids=[str(c) for c, _ in BAD_CONFIGS[:6]])
     def test_model(self, config, match):
@@ -420,6 +430,25 @@ class TestStagesBuiltFromTheirConfigs:
         est = sfs_torch.estimate(image, mask, lighting=sh, focal=80.0, config=config, progress=False)
         assert est.depth is not None and len(built) == 1
         assert (built[0].method, built[0].l1_iter, built[0].max_iter, built[0].focal) == ("l1", 2, 50, 80.0)
+
+    @pytest.mark.parametrize("config_method, argument, integrates", [("l2", "none", False), ("none", "l1", True)])
+    def test_integrate_argument_overrides_the_config(self, scene, monkeypatch, config_method, argument, integrates):
+        from sfs_torch import integrability
+
+        built = []
+
+        class Recording(integrability.Integrator):
+            def forward(self, normals, mask, weights=None):
+                built.append(self)
+                return super().forward(normals, mask, weights)
+
+        monkeypatch.setattr(integrability, "Integrator", Recording)
+        _, mask, sh, image = scene
+        config = {**TINY, "integrate": {"method": config_method, "max_iter": 40}, "refine": {"when": "never"}}
+        est = sfs_torch.estimate(image, mask, lighting=sh, integrate=argument, config=config, progress=False)
+        assert (est.depth is not None) == integrates and len(built) == integrates
+        if integrates:  # the call's method, the config's solver options
+            assert (built[0].method, built[0].max_iter) == (argument, 40)
 
     def test_silhouette_options_reach_every_silhouette_computation(self, scene, monkeypatch):
         import sfs_torch.refine as refine_module
