@@ -22,6 +22,21 @@ TINY = {
 }
 
 
+def _recording_integrators(monkeypatch) -> list:
+    """Every :class:`~sfs_torch.integrability.Integrator` the pipeline runs from now on, in order."""
+    from sfs_torch import integrability
+
+    built = []
+
+    class Recording(integrability.Integrator):
+        def forward(self, normals, mask, weights=None):
+            built.append(self)
+            return super().forward(normals, mask, weights)
+
+    monkeypatch.setattr(integrability, "Integrator", Recording)
+    return built
+
+
 @pytest.fixture(scope="module")
 def scene():
     normals, mask = sphere()
@@ -415,16 +430,7 @@ class TestStagesBuiltFromTheirConfigs:
         assert len(built) == 1 and (built[0].n_trees, built[0].n_bins) == (8, 32)
 
     def test_integrate_options_reach_the_integrator(self, scene, monkeypatch):
-        from sfs_torch import integrability
-
-        built = []
-
-        class Recording(integrability.Integrator):
-            def forward(self, normals, mask, weights=None):
-                built.append(self)
-                return super().forward(normals, mask, weights)
-
-        monkeypatch.setattr(integrability, "Integrator", Recording)
+        built = _recording_integrators(monkeypatch)
         _, mask, sh, image = scene
         config = {**TINY, "integrate": {"method": "l1", "l1_iter": 2, "max_iter": 50}, "refine": {"when": "never"}}
         est = sfs_torch.estimate(image, mask, lighting=sh, focal=80.0, config=config, progress=False)
@@ -433,16 +439,7 @@ class TestStagesBuiltFromTheirConfigs:
 
     @pytest.mark.parametrize("config_method, argument, integrates", [("l2", "none", False), ("none", "l1", True)])
     def test_integrate_argument_overrides_the_config(self, scene, monkeypatch, config_method, argument, integrates):
-        from sfs_torch import integrability
-
-        built = []
-
-        class Recording(integrability.Integrator):
-            def forward(self, normals, mask, weights=None):
-                built.append(self)
-                return super().forward(normals, mask, weights)
-
-        monkeypatch.setattr(integrability, "Integrator", Recording)
+        built = _recording_integrators(monkeypatch)
         _, mask, sh, image = scene
         config = {**TINY, "integrate": {"method": config_method, "max_iter": 40}, "refine": {"when": "never"}}
         est = sfs_torch.estimate(image, mask, lighting=sh, integrate=argument, config=config, progress=False)
