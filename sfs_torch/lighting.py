@@ -22,6 +22,7 @@ from typing import Dict, Optional, Tuple
 import torch
 from torch import Tensor, nn
 
+from ._blocks import in_blocks
 from ._checks import check_finite, check_mask, check_same_size, check_shape
 
 __all__ = [
@@ -127,12 +128,6 @@ def _sh_monomials(n: Tensor) -> Tensor:
     return torch.cat([n, n * n, n[:, 0:2] * n[:, 1:3], n[:, 2:3] * n[:, 0:1]], 1)
 
 
-# Large batches are shaded in blocks of about this many normal values: on CPU a fresh
-# temporary of the size of the whole batch costs about as much as the arithmetic on it
-# (first-touch page faults), while block-sized temporaries stay in cache and are reused.
-_BLOCK_VALUES = 1 << 18
-
-
 def render_sh(normals: Tensor, sh: Tensor) -> Tensor:
     """Shade a normal map with SH lighting.
 
@@ -170,14 +165,11 @@ def render_sh(normals: Tensor, sh: Tensor) -> Tensor:
     if shared:
         coefficients, constant = coefficients.expand(batch, -1, -1), constant.expand(batch, -1)
     flat, constant = normals.reshape(batch, 3, height * width), constant.unsqueeze(-1)
-    step = max(1, _BLOCK_VALUES // max(1, 3 * height * width))
-    if batch <= step:
-        return torch.baddbmm(constant, coefficients, _sh_monomials(flat)).view(batch, 3, height, width)
-    out = flat.new_empty(flat.shape)
-    for start in range(0, batch, step):
-        part = slice(start, start + step)
-        out[part] = torch.baddbmm(constant[part], coefficients[part], _sh_monomials(flat[part]))
-    return out.view(batch, 3, height, width)
+
+    def shade(part: slice) -> Tensor:
+        return torch.baddbmm(constant[part], coefficients[part], _sh_monomials(flat[part]))
+
+    return in_blocks(shade, batch, 3 * height * width, flat.shape, flat).view(batch, 3, height, width)
 
 
 def fit_sh_vectors(

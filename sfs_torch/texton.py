@@ -29,6 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ._blocks import in_blocks
 from ._checks import check_finite, check_mask, check_same_size, check_shape, from_batch, to_batch
 
 __all__ = [
@@ -151,11 +152,6 @@ _RGB_TO_XYZ_WHITE = tuple(tuple(k / w for k in row) for row, w in zip(_RGB_TO_XY
 _G_TO_LAB = ((0.0, 116.0, 0.0), (500.0, -500.0, 0.0), (0.0, 200.0, -200.0))
 _LAB_THRESHOLD = 0.008856  # kornia's (6/29)^3
 _LAB_SLOPE = 7.787  # kornia's (29/6)^2 / 3
-# Large batches are converted and filtered in blocks of about this many image values: on
-# CPU a fresh temporary of the size of the whole batch costs about as much as the
-# arithmetic on it (first-touch page faults), while block-sized temporaries stay in
-# cache and are reused.
-_BLOCK_VALUES = 1 << 18
 
 
 def _mix_channels(image: Tensor, rows: Tuple[Tuple[float, ...], ...]) -> Tensor:
@@ -239,9 +235,7 @@ def texton_features(
     _check_padding(padding)
     batch, single = to_batch(image, "image", 3)
     check_shape(batch, "image", "B 3 H W")
-    # a finite sum means finite values (NaN and inf propagate): the full count only then
-    if not bool(torch.isfinite(batch.sum())):
-        check_finite(batch, "image")
+    check_finite(batch, "image")
     if padding == "valid" and min(batch.shape[-2:]) < kernel_size:
         raise ValueError(
             f"image of size {tuple(batch.shape[-2:])} is smaller than kernel_size {kernel_size} for padding='valid'"
@@ -265,14 +259,8 @@ def texton_features(
             return F.linear(lab.flatten(1), weights.flatten(1)).view(-1, N_TEXTON_FILTERS, 1, 1)
         return F.conv2d(lab, weights, padding=kernel_size // 2 if padding == "same" else 0)
 
-    # large batches (the training patches) in blocks: see _BLOCK_VALUES
-    step = max(1, _BLOCK_VALUES // max(1, batch[0:1].numel()))
-    if n <= step:
-        return from_batch(responses(slice(None)), single)
-    out = batch.new_empty(n, N_TEXTON_FILTERS, height, width)
-    for start in range(0, n, step):
-        out[start : start + step] = responses(slice(start, start + step))
-    return from_batch(out, single)
+    # large batches (the training patches) in blocks
+    return from_batch(in_blocks(responses, n, batch[0:1].numel(), (n, N_TEXTON_FILTERS, height, width), batch), single)
 
 
 class LinearRGBToLab(nn.Module):

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from sfs_torch import lighting
+from sfs_torch import _blocks
 from sfs_torch.lighting import (
     SHFit,
     SHRenderer,
@@ -87,7 +87,7 @@ class TestRenderSH:
         n = random_normals(7, 2, 3).requires_grad_()
         sh = random_sh(7).requires_grad_()
         whole, shared = render_sh(n, sh), render_sh(n, sh[0])
-        monkeypatch.setattr(lighting, "_BLOCK_VALUES", 2 * 18)  # blocks of 2, 2, 2, 1 maps
+        monkeypatch.setattr(_blocks, "BLOCK_VALUES", 2 * 18)  # blocks of 2, 2, 2, 1 maps
         torch.testing.assert_close(render_sh(n, sh), whole, atol=1e-14, rtol=0)
         torch.testing.assert_close(render_sh(n, sh[0]), shared, atol=1e-14, rtol=0)
         assert torch.autograd.gradcheck(render_sh, (n, sh), fast_mode=True)

@@ -6,7 +6,7 @@ from kornia.color import linear_rgb_to_rgb, rgb_to_lab
 from scipy import ndimage
 from skimage.color import rgb2lab
 
-from sfs_torch import texton
+from sfs_torch import _blocks
 from sfs_torch.texton import (
     N_TEXTON_FILTERS,
     TEXTON_FILTER_NAMES,
@@ -161,7 +161,7 @@ class TestTextonFeatures:
         image = (0.05 + 0.9 * torch.rand(7, 3, 5, 6, generator=g, dtype=torch.float64)).requires_grad_()
         mask = torch.rand(7, 1, 5, 6, generator=g) < 0.8
         whole_valid, whole_same = texton_features(image, mask, padding="valid"), texton_features(image, mask)
-        monkeypatch.setattr(texton, "_BLOCK_VALUES", 2 * 90)  # blocks of 2, 2, 2, 1 images
+        monkeypatch.setattr(_blocks, "BLOCK_VALUES", 2 * 90)  # blocks of 2, 2, 2, 1 images
         torch.testing.assert_close(texton_features(image, mask, padding="valid"), whole_valid, atol=1e-12, rtol=0)
         torch.testing.assert_close(texton_features(image, mask), whole_same, atol=1e-12, rtol=0)
         assert texton_features(image, mask, padding="valid").shape == (7, 17, 1, 2)
