@@ -44,9 +44,9 @@ from .image_formation import estimate_noise_sigma
 from .integrability import METHODS, IntegrabilityConfig, Integrator
 from .lighting import fit_sh_vectors, render_sh, rotate_sh, sh_basis_vectors
 from .reflectance_map import (
-    PROFILES,
     VALIDITY_DIRECTIONS,
     ReflectanceMapConfig,
+    check_reflectance_map_config,
     estimate_lighting,
     hemisphere_directions,
     refit_lighting,
@@ -289,7 +289,8 @@ def _check_config(cfg: PipelineConfig) -> None:
             f"texton.kernel_size ({cfg.texton.kernel_size}) must equal database.patch_size ({cfg.database.patch_size}) "
             "with features.texton: a training patch is filtered whole for its centre pixel's response"
         )
-    _check_reflectance_map_config(cfg.reflectance_map)
+    with _named("reflectance_map"):
+        check_reflectance_map_config(cfg.reflectance_map)
     if not (cfg.features.rgb or cfg.features.silhouette or cfg.features.texton):
         raise ValueError("features enables no feature: set at least one of features.rgb, features.silhouette, "
                          "features.texton")
@@ -317,16 +318,6 @@ def _check_silhouette_config(cfg: SilhouetteConfig) -> None:
         raise ValueError(f"silhouette.prune_angle must be in [0, 180] degrees, got {cfg.prune_angle!r}")
     if not cfg.depth_layer_ratio > 1:  # inf allowed: the plain distance to the axis
         raise ValueError(f"silhouette.depth_layer_ratio must be > 1 (inf for none), got {cfg.depth_layer_ratio!r}")
-
-
-def _check_reflectance_map_config(cfg: ReflectanceMapConfig) -> None:
-    if cfg.profile not in PROFILES:
-        raise ValueError(f"reflectance_map.profile must be one of {PROFILES}, got {cfg.profile!r}")
-    for name, minimum in (("n_directions", 9), ("min_k", 1), ("max_pixels", 1)):
-        if not getattr(cfg, name) >= minimum:
-            raise ValueError(f"reflectance_map.{name} must be an integer >= {minimum}, got {getattr(cfg, name)!r}")
-    if not 0 < cfg.knn_fraction <= 1:
-        raise ValueError(f"reflectance_map.knn_fraction must be in (0, 1], got {cfg.knn_fraction!r}")
 
 
 def _check_training_config(cfg: TrainingConfig) -> None:

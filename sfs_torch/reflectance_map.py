@@ -29,6 +29,7 @@ from .silhouette import SilhouetteConfig, silhouette_distances
 
 __all__ = [
     "ReflectanceMapConfig",
+    "check_reflectance_map_config",
     "LightingEstimator",
     "LightingRefit",
     "sphere_mapping",
@@ -69,6 +70,18 @@ class ReflectanceMapConfig:
     min_k: int = 4
     max_pixels: int = 20000
     match_statistics: bool = True
+
+
+def check_reflectance_map_config(cfg: ReflectanceMapConfig) -> None:
+    """``ValueError`` naming the first bad option of ``cfg`` by its field name (callers put
+    the group in front: ``reflectance_map.`` in the pipeline, ``config.`` in :class:`LightingEstimator`)."""
+    if cfg.profile not in PROFILES:
+        raise ValueError(f"profile must be one of {PROFILES}, got {cfg.profile!r}")
+    for name, minimum in (("n_directions", 9), ("min_k", 1), ("max_pixels", 1)):
+        if not getattr(cfg, name) >= minimum:
+            raise ValueError(f"{name} must be an integer >= {minimum}, got {getattr(cfg, name)!r}")
+    if not 0 < cfg.knn_fraction <= 1:
+        raise ValueError(f"knn_fraction must be in (0, 1], got {cfg.knn_fraction!r}")
 
 
 def hemisphere_directions(n: int, *, device=None, dtype=torch.float32) -> Tensor:
@@ -251,8 +264,10 @@ class LightingEstimator(nn.Module):
                 raise ValueError(f"config does not fit ReflectanceMapConfig: {err}") from None
         elif not isinstance(config, ReflectanceMapConfig):
             raise TypeError(f"config must be a ReflectanceMapConfig, a mapping or None, got {type(config).__name__}")
-        if config.profile not in PROFILES:
-            raise ValueError(f"config.profile must be one of {PROFILES}, got {config.profile!r}")
+        try:
+            check_reflectance_map_config(config)
+        except ValueError as err:
+            raise ValueError(f"config.{err}") from None
         self.config = config
         self.focal = None if focal is None else _positive_focal(focal)
         self.principal_point = principal_point
