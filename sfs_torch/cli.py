@@ -39,6 +39,7 @@ from .geometry_db import DatabaseConfig, evaluation_shapes  # noqa: E402
 from .integrability import depth_to_mesh  # noqa: E402
 from .lighting import natural_lightings, render_sh, render_sphere  # noqa: E402
 from .metrics import lmse, normal_metrics  # noqa: E402
+from .model import ShapeFromShading  # noqa: E402
 from .novel_view import NovelViewConfig, render_novel_view  # noqa: E402
 from .pipeline import Estimate, PipelineConfig, TrainingConfig, estimate, moved_option_hint, resolve_config  # noqa: E402
 from .preview import RendererChoice, choose_renderer, gl_context, renderer_name  # noqa: E402
@@ -290,15 +291,20 @@ def _estimate_and_publish(
     out: Path, image: torch.Tensor, mask: torch.Tensor, known: Optional[torch.Tensor], pipeline_cfg: PipelineConfig,
     mesh_formats: Tuple[str, ...], title: str, *, true_normals: Optional[torch.Tensor] = None,
     true_lighting: Optional[torch.Tensor] = None, progress: bool = True, novel_view: Optional[_NovelView] = None,
+    model: Optional[ShapeFromShading] = None,
 ) -> Dict[str, float]:
     """Estimate one image and publish its outputs into ``out``; return the key numbers.
 
     The single-image path of the command, shared by the demo, ``image=`` and every item of
     a batch. ``image`` is :math:`(3, H, W)`, ``mask`` :math:`(1, H, W)`; ``true_normals``
     :math:`(3, H, W)` and ``true_lighting`` :math:`(3, 9)`, when known, are scored;
-    ``novel_view`` (:func:`_novel_view`) draws ``novel_view.png`` (default: the ray caster).
+    ``novel_view`` (:func:`_novel_view`) draws ``novel_view.png`` (default: the ray caster);
+    ``model`` holds the example-geometry database of ``pipeline_cfg.database`` across the
+    calls of a batch (:meth:`~sfs_torch.model.ShapeFromShading.database`), ``None``: this
+    call loads it.
     """
-    est = estimate(image, mask, lighting=known, config=pipeline_cfg, progress=progress)
+    database = None if model is None else model.database(image.device)
+    est = estimate(image, mask, lighting=known, config=pipeline_cfg, progress=progress, database=database)
     # every file is written under a hidden staging folder first and renamed into place
     # when all are complete: a killed run leaves no half-written file under a final name
     out.mkdir(parents=True, exist_ok=True)
@@ -399,7 +405,9 @@ def run_batch(cfg: DictConfig) -> BatchResult:
     ``camera.json``: the ``folder`` layout of :func:`sfs_torch.dataset_loaders.load_folder`.
     Its outputs, those of a single-image run, go to ``<out>/<item>/``. An item that fails is
     logged in one line and the batch goes on; one whose outputs are complete is skipped
-    (unless ``skip_done=false``). ``<out>/summary.csv`` is rewritten after every item.
+    (unless ``skip_done=false``). ``<out>/summary.csv`` is rewritten after every item. The
+    example-geometry database is loaded once, at the first item estimated, and kept on
+    ``device`` for the others.
 
     Returns:
         :class:`BatchResult`.
@@ -417,6 +425,8 @@ def run_batch(cfg: DictConfig) -> BatchResult:
     folders = _batch_folders(cfg, out)
     novel_view = _novel_view(cfg, pipeline_cfg)
     expected = _expected_outputs(pipeline_cfg, mesh_formats)
+    # holds the example-geometry database, loaded at the first item that is estimated, for all the others
+    model = ShapeFromShading(pipeline_cfg, progress=False)
     out.mkdir(parents=True, exist_ok=True)
     summary = out / "summary.csv"
     rows: List[BatchItem] = []
@@ -427,7 +437,8 @@ def run_batch(cfg: DictConfig) -> BatchResult:
     with _quiet_stages(), logging_redirect_tqdm(), bar:
         for folder in bar:
             bar.set_postfix_str(", ".join([*_counts(rows), folder.name]))
-            rows.append(_batch_item(cfg, folder, out / folder.name, pipeline_cfg, mesh_formats, expected, novel_view))
+            rows.append(_batch_item(cfg, folder, out / folder.name, pipeline_cfg, mesh_formats, expected, model,
+                                    novel_view))
             _write_summary(summary, rows)
         bar.set_postfix_str(", ".join(_counts(rows)))
     result = BatchResult(tuple(rows), summary)
@@ -485,9 +496,10 @@ def _expected_outputs(pipeline_cfg: PipelineConfig, mesh_formats: Tuple[str, ...
 
 
 def _batch_item(cfg: DictConfig, folder: Path, target: Path, pipeline_cfg: PipelineConfig,
-                mesh_formats: Tuple[str, ...], expected: Tuple[str, ...],
+                mesh_formats: Tuple[str, ...], expected: Tuple[str, ...], model: ShapeFromShading,
                 novel_view: Optional[_NovelView] = None) -> BatchItem:
-    """Run one item; a failure becomes a ``failed`` row (and one log line), never an exception."""
+    """Run one item (``model``: the batch's, which holds the database); a failure becomes a
+    ``failed`` row (and one log line), never an exception."""
     start = time.perf_counter()
     if cfg.skip_done and all((target / name).is_file() for name in expected):
         return BatchItem(folder.name, "skipped", time.perf_counter() - start,
@@ -505,7 +517,7 @@ def _batch_item(cfg: DictConfig, folder: Path, target: Path, pipeline_cfg: Pipel
         true_normals = None if scene.normals is None else scene.normals[0]
         numbers = _estimate_and_publish(
             target, scene.image[0].to(device), scene.mask[0].to(device), known, item_cfg, mesh_formats,
-            f"sfs-torch: {folder}", true_normals=true_normals, progress=False, novel_view=novel_view,
+            f"sfs-torch: {folder}", true_normals=true_normals, progress=False, novel_view=novel_view, model=model,
         )
     except Exception as err:  # one item's failure, whatever it is, must not stop the batch
         message = " ".join(str(err).split())

@@ -50,7 +50,9 @@ from torch import Tensor  # noqa: E402
 
 from ._app import exit_unless_writable, output_folder, parse_device  # noqa: E402
 from .datasets import DEGRADATIONS, EVALUATION_LIGHTINGS, Scene  # noqa: E402
+from .geometry_db import GeometryDatabase  # noqa: E402
 from .metrics import lmse, normal_metrics  # noqa: E402
+from .model import ShapeFromShading  # noqa: E402
 from .pipeline import FeatureConfig, PipelineConfig, TrainingConfig, moved_option_hint, resolve_config  # noqa: E402
 from .refine import RefineConfig, check_refine_config  # noqa: E402
 
@@ -229,6 +231,7 @@ class _Context:
     pipeline: PipelineConfig
     classical: RefineConfig
     device: torch.device
+    database: Optional[GeometryDatabase]
 
 
 def _on_device(scene: Scene, device: torch.device) -> Tuple[Tensor, Tensor]:
@@ -261,7 +264,7 @@ def _estimator(*, known: bool, integrate: Optional[str] = None,
         image, mask = _on_device(scene, ctx.device)
         lighting = scene.lighting.to(ctx.device) if known else None
         est = estimate(image, mask, focal=scene.focal, principal_point=scene.principal_point, lighting=lighting,
-                       integrate=integrate, config=cfg, progress=False)
+                       integrate=integrate, config=cfg, progress=False, database=ctx.database)
         # a given lighting is the case's own: nothing to score
         return est.normals, None if known else est.lighting, est.timings.get("database", 0.0)
 
@@ -325,7 +328,8 @@ def _synchronize(device: torch.device) -> None:
 
 
 def run_method(name: str, scene: Scene, *, pipeline: Optional[PipelineConfig] = None,
-               classical: Optional[RefineConfig] = None, device: Any = "cpu") -> Optional[MethodResult]:
+               classical: Optional[RefineConfig] = None, device: Any = "cpu",
+               database: Optional[GeometryDatabase] = None) -> Optional[MethodResult]:
     """Run one method of :data:`METHODS` on one case.
 
     Args:
@@ -334,6 +338,10 @@ def run_method(name: str, scene: Scene, *, pipeline: Optional[PipelineConfig] = 
         pipeline: :func:`sfs_torch.estimate`'s options (default: :class:`EvalConfig`'s).
         classical: the ``classical`` method's options (default: :class:`EvalConfig`'s).
         device: where the method runs.
+        database: the example-geometry database of ``pipeline.database`` on ``device``, loaded
+            once for many calls (:meth:`~sfs_torch.model.ShapeFromShading.database`, as
+            :func:`evaluate` does); ``None``: a method that uses the forest loads it
+            (:func:`~sfs_torch.geometry_db.load_database`).
 
     Returns:
         :class:`MethodResult` (tensors on the CPU), or ``None`` when the method needs a
@@ -347,7 +355,7 @@ def run_method(name: str, scene: Scene, *, pipeline: Optional[PipelineConfig] = 
     method = METHODS[name]
     if method.needs_lighting and scene.lighting is None:
         return None
-    ctx = _Context(pipeline or _eval_pipeline(), classical or _classical(), torch.device(device))
+    ctx = _Context(pipeline or _eval_pipeline(), classical or _classical(), torch.device(device), database)
     _synchronize(ctx.device)
     start = time.perf_counter()
     normals, lighting, excluded = method.run(ctx, scene)
@@ -395,9 +403,10 @@ class CaseScores:
 
 
 def score_case(scene: Scene, methods: Sequence[str], *, pipeline: Optional[PipelineConfig] = None,
-               classical: Optional[RefineConfig] = None, device: Any = "cpu") -> CaseScores:
-    """Run and score ``methods`` on one case. Methods that need a lighting the case lacks
-    are left out.
+               classical: Optional[RefineConfig] = None, device: Any = "cpu",
+               database: Optional[GeometryDatabase] = None) -> CaseScores:
+    """Run and score ``methods`` on one case (the arguments are :func:`run_method`'s). Methods
+    that need a lighting the case lacks are left out.
 
     Raises:
         ValueError: from a method, prefixed with the case and the method.
@@ -406,7 +415,8 @@ def score_case(scene: Scene, methods: Sequence[str], *, pipeline: Optional[Pipel
     rows = []
     for method in methods:
         try:
-            result = run_method(method, scene, pipeline=pipeline, classical=classical, device=device)
+            result = run_method(method, scene, pipeline=pipeline, classical=classical, device=device,
+                                database=database)
         except ValueError as err:
             raise ValueError(f"case {scene.name!r}, method {method}: {err}") from None
         if result is None:
@@ -784,16 +794,17 @@ def _check_resume(out: Path, fingerprint: Dict[str, Any], resume: bool) -> List[
     return rows
 
 
-def _warm_up(plan: _Plan, progress: bool) -> None:
+def _warm_up(plan: _Plan, progress: bool) -> Optional[GeometryDatabase]:
     """One-off costs no case should pay in its ``time_s``: building or reading the
     example-geometry database, and torch's import of its compiler stack the first time an
-    optimiser is made (seconds, on the first L-BFGS refinement)."""
+    optimiser is made (seconds, on the first L-BFGS refinement). Returns that database on
+    ``plan.device``, for every case (``None`` when no method uses the forest)."""
+    database = None
     if any(METHODS[m].uses_forest for m in plan.methods):
-        from .geometry_db import load_database
-
-        load_database(plan.pipeline.database, progress=progress)
+        database = ShapeFromShading(plan.pipeline, progress=progress).database(plan.device)
     if any(m not in ("silhouette", "flat") for m in plan.methods):
         torch.optim.LBFGS([torch.zeros(1, requires_grad=True)])
+    return database
 
 
 @contextmanager
@@ -826,7 +837,7 @@ def evaluate(cfg: DictConfig, *, command: Optional[str] = None) -> Dict[str, Any
     _write_atomic(out / "eval_config.json", json.dumps(plan.fingerprint, indent=2) + "\n")
     done: Set[Tuple[str, str]] = {(r["case"], r["method"]) for r in previous}
     rows: List[Dict[str, Any]] = list(previous)
-    _warm_up(plan, progress=bool(cfg.progress))
+    database = _warm_up(plan, progress=bool(cfg.progress))
     from tqdm import tqdm
     from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -841,7 +852,8 @@ def evaluate(cfg: DictConfig, *, command: Optional[str] = None) -> Dict[str, Any
                 break
             seen.append(scene.name)
             todo = [m for m in plan.methods if (scene.name, m) not in done]
-            scores = score_case(scene, todo, pipeline=plan.pipeline, classical=plan.classical, device=plan.device)
+            scores = score_case(scene, todo, pipeline=plan.pipeline, classical=plan.classical, device=plan.device,
+                                database=database)
             results, new_rows = scores.results, scores.rows
             if results and cfg.figures:
                 _figure(out, scene, results, partial=len(todo) < len(plan.methods))

@@ -38,3 +38,21 @@ def dtype(request):
 def _isolated_cache(tmp_path_factory, monkeypatch):
     # Tests never touch the user's cache: every session gets its own.
     monkeypatch.setenv("SFS_TORCH_CACHE", str(tmp_path_factory.getbasetemp() / "cache"))
+
+
+@pytest.fixture()
+def database_loads(monkeypatch):
+    """The configs of every ``load_database`` call during the test, whoever makes it."""
+    import sfs_torch.geometry_db as geometry_db
+    import sfs_torch.pipeline as pipeline
+
+    loads = []
+    original = geometry_db.load_database
+
+    def counted(cfg, **kwargs):
+        loads.append(cfg)
+        return original(cfg, **kwargs)
+
+    monkeypatch.setattr(geometry_db, "load_database", counted)
+    monkeypatch.setattr(pipeline, "load_database", counted)  # estimate()'s own import of it
+    return loads

@@ -455,6 +455,18 @@ class TestBatch:
         assert known is None and kwargs["true_normals"] is None
         assert camera.focal == 1000.0 and camera.principal_point is None  # camera=persp's
 
+    def test_the_database_is_loaded_once_for_the_batch(self, tmp_path, database_loads):
+        import sfs_torch.cli as cli
+
+        photos = tmp_path / "photos"
+        for name, radius in (("a", 12.0), ("b", 10.0), ("c", 11.0)):
+            write_item(photos / name, radius=radius, size=32)
+        result = cli.run_batch(compose_batch([f"input_dir={photos}", f"out={tmp_path / 'r'}", "refine_rounds=0",
+                                              "refine.when=never"]))
+        assert [r.status for r in result.items] == ["ok", "ok", "ok"]
+        # once for the batch, not once per item (each estimate() read and hashed the file again)
+        assert len(database_loads) == 1
+
     def test_skip_done_false_recomputes(self, tmp_path, monkeypatch):
         import sfs_torch.cli as cli
 

@@ -206,6 +206,15 @@ class TestResume:
         assert len(rows) == 2
 
 
+class TestDatabase:
+    def test_loaded_once_for_the_run(self, tmp_path, database_loads):
+        # two cases, two forest methods each: every estimate() read and hashed the file again
+        summary = run_eval([*TINY, *SYNTHETIC, "methods=[known_lighting_rgb,known_lighting_forest]", "figures=false",
+                            f"out={tmp_path / 'out'}"])
+        assert summary["methods"]["known_lighting_forest"]["cases"] == 2
+        assert len(database_loads) == 1
+
+
 class TestFolderWithoutGroundTruth:
     def test_runs_and_leaves_the_errors_empty(self, tmp_path):
         normals, mask = sphere(40, 15.0)
