@@ -44,6 +44,7 @@ from .camera import _positive_focal, pixel_grid
 
 __all__ = [
     "IntegrabilityConfig",
+    "check_integrability_config",
     "Surface",
     "Integrator",
     "DepthToNormals",
@@ -91,6 +92,33 @@ class IntegrabilityConfig:
     l1_delta: float = 0.02
     conv_iter: int = 10
     conv_prior: float = 0.1
+
+
+def check_integrability_config(cfg: IntegrabilityConfig, prefix: str = "") -> None:
+    """``ValueError`` naming the first bad option of ``cfg`` as ``prefix`` + its field name
+    (``"integrate."`` in the pipeline, none in :class:`Integrator`, whose arguments they are).
+
+    ``method`` must be a solver of :data:`METHODS`; the pipeline's ``integrate.method="none"``
+    (no solver) is the pipeline's to check.
+
+    Example:
+        >>> check_integrability_config(IntegrabilityConfig(tol=0.0), prefix="integrate.")
+        Traceback (most recent call last):
+        ...
+        ValueError: integrate.tol must be > 0, got 0.0
+    """
+    if cfg.method not in METHODS:
+        raise ValueError(f"{prefix}method must be one of {METHODS}, got {cfg.method!r}")
+    for name, minimum in (("max_iter", 1), ("l1_iter", 0), ("conv_iter", 0)):
+        if not getattr(cfg, name) >= minimum:
+            raise ValueError(f"{prefix}{name} must be an integer >= {minimum}, got {getattr(cfg, name)!r}")
+    for name in ("tol", "l1_delta"):
+        if not getattr(cfg, name) > 0:
+            raise ValueError(f"{prefix}{name} must be > 0, got {getattr(cfg, name)!r}")
+    if not 0 < cfg.min_nz < 1:
+        raise ValueError(f"{prefix}min_nz must be in (0, 1), got {cfg.min_nz!r}")
+    if not cfg.conv_prior >= 0:
+        raise ValueError(f"{prefix}conv_prior must be >= 0, got {cfg.conv_prior!r}")
 
 
 @dataclass(frozen=True)
@@ -777,6 +805,9 @@ class Integrator(nn.Module):
 
     ``forward(normals, mask, weights=None)`` takes :math:`(B, 3, H, W)` normals, or
     :math:`(B, S, 3, H, W)` candidates when ``method="conv"``.
+
+    Raises:
+        ValueError: an option out of range, named (:func:`check_integrability_config`).
     """
 
     def __init__(
@@ -793,9 +824,11 @@ class Integrator(nn.Module):
         principal_point: Optional[Sequence[float]] = None,
     ):
         super().__init__()
-        if method not in METHODS:
-            # "none" is the pipeline's choice not to integrate (integrate=none): it builds no Integrator
-            raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+        # "none" is the pipeline's choice not to integrate (integrate=none): it builds no Integrator
+        check_integrability_config(IntegrabilityConfig(
+            method=method, max_iter=max_iter, tol=tol, min_nz=min_nz, l1_iter=l1_iter, l1_delta=l1_delta,
+            conv_iter=conv_iter, conv_prior=conv_prior,
+        ))
         self.method, self.max_iter, self.tol, self.min_nz = method, max_iter, tol, min_nz
         self.l1_iter, self.l1_delta = l1_iter, l1_delta
         self.conv_iter, self.conv_prior = conv_iter, conv_prior

@@ -41,7 +41,7 @@ from .forest_cache import CACHE_POLICIES, evict_forests, forest_path, load_fores
 from .geometry_db import DatabaseConfig, GeometryDatabase, load_database
 from .geometry_db import _check_config as _check_database_config
 from .image_formation import estimate_noise_sigma
-from .integrability import METHODS, IntegrabilityConfig, Integrator
+from .integrability import METHODS, IntegrabilityConfig, Integrator, check_integrability_config
 from .lighting import fit_sh_vectors, render_sh, rotate_sh, sh_basis_vectors
 from .reflectance_map import (
     VALIDITY_DIRECTIONS,
@@ -52,7 +52,7 @@ from .reflectance_map import (
     refit_lighting,
 )
 from .refine import RefineConfig, check_refine_config, photometric_residual, refine_shape_and_lighting
-from .silhouette import SilhouetteConfig, coarse_normals, silhouette_features
+from .silhouette import SilhouetteConfig, check_silhouette_config, coarse_normals, silhouette_features
 from .texton import N_TEXTON_FILTERS, TextonConfig, _check_kernel_size, texton_features
 
 __all__ = ["FeatureConfig", "TrainingConfig", "PipelineConfig", "Estimate", "estimate", "resolve_config", "training_set",
@@ -272,7 +272,7 @@ def _check_config(cfg: PipelineConfig) -> None:
     """Validate every option of a merged config; ``ValueError`` naming the first bad key."""
     with _named("database"):
         _check_database_config(cfg.database)
-    _check_silhouette_config(cfg.silhouette)
+    check_silhouette_config(cfg.silhouette, prefix="silhouette.")
     if cfg.features.silhouette and cfg.silhouette != SilhouetteConfig():
         default = asdict(SilhouetteConfig())
         key, value = next((k, v) for k, v in asdict(cfg.silhouette).items() if v != default[k])
@@ -296,7 +296,11 @@ def _check_config(cfg: PipelineConfig) -> None:
                          "features.texton")
     _check_training_config(cfg.training)
     _check_forest_config(cfg)
-    _check_integrate_config(cfg.integrate)
+    if cfg.integrate.method not in INTEGRATION_METHODS:
+        raise ValueError(f"integrate.method must be one of {INTEGRATION_METHODS} (e.g. integrate=l2), "
+                         f"got {cfg.integrate.method!r}")
+    # the solver's options are checked with "none" too (no solver is built then): as those of the default solver
+    check_integrability_config(replace(cfg.integrate, method=IntegrabilityConfig.method), prefix="integrate.")
     with _named("camera"):
         _check_focal(cfg.camera.focal)
         _check_principal_point(cfg.camera.principal_point, cfg.camera.focal, warn=False)
@@ -309,17 +313,6 @@ def _check_config(cfg: PipelineConfig) -> None:
         raise ValueError(f"conv_samples_per_tree must be an integer >= 1, got {cfg.conv_samples_per_tree!r}")
 
 
-def _check_silhouette_config(cfg: SilhouetteConfig) -> None:
-    for name in ("prune_distance", "prune_angle", "prune_depth_ratio", "prune_window", "gradient_sigma"):
-        value = getattr(cfg, name)
-        if not (math.isfinite(value) and value >= 0):
-            raise ValueError(f"silhouette.{name} must be a finite number >= 0, got {value!r}")
-    if cfg.prune_angle > 180:
-        raise ValueError(f"silhouette.prune_angle must be in [0, 180] degrees, got {cfg.prune_angle!r}")
-    if not cfg.depth_layer_ratio > 1:  # inf allowed: the plain distance to the axis
-        raise ValueError(f"silhouette.depth_layer_ratio must be > 1 (inf for none), got {cfg.depth_layer_ratio!r}")
-
-
 def _check_training_config(cfg: TrainingConfig) -> None:
     for name in ("noise_sigma", "brightness_jitter", "colour_jitter"):
         value = getattr(cfg, name)
@@ -329,21 +322,6 @@ def _check_training_config(cfg: TrainingConfig) -> None:
         raise ValueError(f"training.cache_forests must be one of {CACHE_POLICIES}, got {cfg.cache_forests!r}")
     if not (isinstance(cfg.max_cached_forests, int) and cfg.max_cached_forests >= 1):
         raise ValueError(f"training.max_cached_forests must be an integer >= 1, got {cfg.max_cached_forests!r}")
-
-
-def _check_integrate_config(cfg: IntegrabilityConfig) -> None:
-    if cfg.method not in INTEGRATION_METHODS:
-        raise ValueError(f"integrate.method must be one of {INTEGRATION_METHODS} (e.g. integrate=l2), got {cfg.method!r}")
-    for name, minimum in (("max_iter", 1), ("l1_iter", 0), ("conv_iter", 0)):
-        if not getattr(cfg, name) >= minimum:
-            raise ValueError(f"integrate.{name} must be an integer >= {minimum}, got {getattr(cfg, name)!r}")
-    for name in ("tol", "l1_delta"):
-        if not getattr(cfg, name) > 0:
-            raise ValueError(f"integrate.{name} must be > 0, got {getattr(cfg, name)!r}")
-    if not 0 < cfg.min_nz < 1:
-        raise ValueError(f"integrate.min_nz must be in (0, 1), got {cfg.min_nz!r}")
-    if not cfg.conv_prior >= 0:
-        raise ValueError(f"integrate.conv_prior must be >= 0, got {cfg.conv_prior!r}")
 
 
 def pixel_features(image: Tensor, mask: Tensor, features: FeatureConfig, texton_cfg: TextonConfig,

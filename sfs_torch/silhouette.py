@@ -37,6 +37,7 @@ from .camera import rotate_normals_to_camera
 
 __all__ = [
     "SilhouetteConfig",
+    "check_silhouette_config",
     "SilhouetteDistances",
     "euclidean_distance_transform",
     "medial_axis",
@@ -88,6 +89,34 @@ class SilhouetteConfig:
     prune_window: float = 2.0
     depth_layer_ratio: float = 2.0
     gradient_sigma: float = 1.5
+
+
+def check_silhouette_config(cfg: SilhouetteConfig, prefix: str = "") -> None:
+    """``ValueError`` naming the first bad option of ``cfg`` as ``prefix`` + its field name
+    (``"silhouette."`` in the pipeline, ``"config."`` in the functions here).
+
+    Example:
+        >>> check_silhouette_config(SilhouetteConfig(prune_angle=200.0), prefix="silhouette.")
+        Traceback (most recent call last):
+        ...
+        ValueError: silhouette.prune_angle must be in [0, 180] degrees, got 200.0
+    """
+    for name in ("prune_distance", "prune_angle", "prune_depth_ratio", "prune_window", "gradient_sigma"):
+        value = getattr(cfg, name)
+        if not (math.isfinite(value) and value >= 0):
+            raise ValueError(f"{prefix}{name} must be a finite number >= 0, got {value!r}")
+    if cfg.prune_angle > 180:
+        raise ValueError(f"{prefix}prune_angle must be in [0, 180] degrees, got {cfg.prune_angle!r}")
+    if not cfg.depth_layer_ratio > 1:  # inf allowed: the plain distance to the axis
+        raise ValueError(f"{prefix}depth_layer_ratio must be > 1 (inf for none), got {cfg.depth_layer_ratio!r}")
+
+
+def _checked_config(config: Optional[SilhouetteConfig]) -> SilhouetteConfig:
+    """A function's ``config`` argument, checked; the defaults for ``None``."""
+    if config is None:
+        return SilhouetteConfig()
+    check_silhouette_config(config, prefix="config.")
+    return config
 
 
 def _mask_argument(mask: Tensor, name: str, allow_empty: bool) -> Tuple[Tensor, bool]:
@@ -335,12 +364,13 @@ def medial_axis(mask: Tensor, config: Optional[SilhouetteConfig] = None) -> Tens
 
     Args:
         mask: :math:`(B, 1, H, W)` bool or 0/1, non-empty, not the whole image.
-        config: pruning knobs; default :class:`SilhouetteConfig`.
+        config: pruning knobs, checked (:func:`check_silhouette_config`); default
+            :class:`SilhouetteConfig`.
 
     Returns:
         :math:`(B, 1, H, W)` bool, a subset of ``mask``.
     """
-    config = SilhouetteConfig() if config is None else config
+    config = _checked_config(config)
     batch, single = _mask_argument(mask, "mask", allow_empty=False)
     fg = batch[:, 0]
     dist2, feat_row, feat_col = _edt_squared(fg)
@@ -425,12 +455,13 @@ def silhouette_distances(mask: Tensor, config: Optional[SilhouetteConfig] = None
         mask: :math:`(B, 1, H, W)` bool or 0/1 object mask, non-empty, not the whole
             image; several components, holes and border contact are fine. A single
             :math:`(1, H, W)` or :math:`(H, W)` mask gives :math:`(1, H, W)` fields.
-        config: :class:`SilhouetteConfig`.
+        config: :class:`SilhouetteConfig`, checked (:func:`check_silhouette_config`); ``None``
+            for the defaults.
 
     Returns:
         :class:`SilhouetteDistances`, float32 fields :math:`(B, 1, H, W)`.
     """
-    config = SilhouetteConfig() if config is None else config
+    config = _checked_config(config)
     batch, single = _mask_argument(mask, "mask", allow_empty=False)
     fg = batch[:, 0]
     dist2, feat_row, feat_col = _edt_squared(fg)

@@ -1,3 +1,4 @@
+import re
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from sfs_torch.integrability import (
     _CoarseInverse,
     _Level,
     _Multigrid,
+    check_integrability_config,
     depth_to_mesh,
     depth_to_normals,
     integrate_convex,
@@ -234,6 +236,32 @@ class TestIntegrateL2:
         # "none" is the pipeline's integrate=none: it builds no Integrator
         with pytest.raises(ValueError, match=r"^method must be one of \('l2', 'l1', 'conv'\)"):
             Integrator(method=method)
+
+
+class TestCheckIntegrabilityConfig:
+    @pytest.mark.parametrize("options, message", [
+        ({"method": "none"}, r"method must be one of \('l2', 'l1', 'conv'\), got 'none'"),
+        ({"max_iter": 0}, r"max_iter must be an integer >= 1, got 0"),
+        ({"l1_iter": -1}, r"l1_iter must be an integer >= 0, got -1"),
+        ({"tol": 0.0}, r"tol must be > 0, got 0.0"),
+        ({"l1_delta": -0.1}, r"l1_delta must be > 0, got -0.1"),
+        ({"min_nz": 1.0}, r"min_nz must be in \(0, 1\), got 1.0"),
+        ({"conv_prior": -1.0}, r"conv_prior must be >= 0, got -1.0"),
+    ])
+    @pytest.mark.parametrize("prefix", ["", "integrate."])
+    def test_exception_names_the_key(self, options, message, prefix):
+        with pytest.raises(ValueError, match=f"^{re.escape(prefix)}{message}$"):
+            check_integrability_config(IntegrabilityConfig(**options), prefix=prefix)
+
+    def test_valid(self):
+        for method in ("l2", "l1", "conv"):
+            check_integrability_config(IntegrabilityConfig(method=method, l1_iter=0, conv_iter=0, conv_prior=0.0))
+
+    def test_the_module_checks_its_arguments(self):
+        with pytest.raises(ValueError, match=r"^tol must be > 0, got 0.0$"):
+            Integrator(tol=0.0)
+        with pytest.raises(ValueError, match=r"^min_nz must be in \(0, 1\), got 0.0$"):
+            Integrator(method="l1", min_nz=0.0)
 
 
 class TestMultigrid:

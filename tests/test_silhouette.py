@@ -1,4 +1,5 @@
 import math
+import re
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from sfs_torch.silhouette import (
     euclidean_distance_transform,
     _edt_squared_torch,
     _lower_envelope,
+    check_silhouette_config,
     medial_axis,
     silhouette_distances,
     silhouette_features,
@@ -207,6 +209,33 @@ class TestLowerEnvelope:
             # the leftmost argmin (ties go to the smaller column)
             assert torch.equal(arg[finite], ref_arg[finite])
             assert bool(torch.isinf(value[0]).all())
+
+
+class TestCheckSilhouetteConfig:
+    @pytest.mark.parametrize("options, message", [
+        ({"prune_distance": -1.0}, r"prune_distance must be a finite number >= 0, got -1.0"),
+        ({"gradient_sigma": math.nan}, r"gradient_sigma must be a finite number >= 0, got nan"),
+        ({"prune_angle": 181.0}, r"prune_angle must be in \[0, 180\] degrees, got 181.0"),
+        ({"depth_layer_ratio": 1.0}, r"depth_layer_ratio must be > 1 \(inf for none\), got 1.0"),
+    ])
+    @pytest.mark.parametrize("prefix", ["", "silhouette."])
+    def test_exception_names_the_key(self, options, message, prefix):
+        with pytest.raises(ValueError, match=f"^{re.escape(prefix)}{message}$"):
+            check_silhouette_config(SilhouetteConfig(**options), prefix=prefix)
+
+    def test_valid(self):
+        # the defaults, no pruning or smoothing at all, and the plain distance to the axis
+        unpruned = SilhouetteConfig(prune_distance=0.0, prune_angle=0.0, prune_depth_ratio=0.0, gradient_sigma=0.0)
+        for cfg in (SilhouetteConfig(), unpruned, SilhouetteConfig(depth_layer_ratio=math.inf)):
+            check_silhouette_config(cfg, prefix="silhouette.")
+
+    def test_the_functions_check_their_config(self):
+        mask, _, _ = disk(32, 10.0)
+        m = torch.from_numpy(mask)[None, None]
+        bad = SilhouetteConfig(prune_angle=-5.0)
+        for function in (medial_axis, silhouette_distances, silhouette_features, coarse_normals):
+            with pytest.raises(ValueError, match=r"^config\.prune_angle must be a finite number >= 0"):
+                function(m, config=bad)
 
 
 class TestMedialAxis:
