@@ -2,32 +2,32 @@ r"""Regression forest with von Mises-Fisher leaves (Richter & Roth 2015, Sec. 5)
 
 The forest is retrained for every test lighting, so training speed dominates the
 method's cost. Trees grow one level per Python iteration, with histogram split search;
-on the CPU each tree grows on its own and ``n_jobs`` trees at once in threads (the hot
-scatter-adds are single-threaded in ATen; torch ops release the GIL), on a GPU all
-trees grow together:
+on the CPU each tree grows on its own and ``n_jobs`` trees at once in threads, its split
+search and routing compiled by Numba (``sfs_torch._forest_kernel``, float32; the loops
+release the GIL); on other devices (and in float64) all trees grow together in torch
+ops:
 
 1. every feature is cut once into ``n_bins`` quantile bins (the edges are data values,
    so a bin threshold is also an exact threshold on the raw feature);
 2. each tree draws a random ``sample_fraction`` of the rows (without replacement); the
    (tree, row) pairs of the nodes still growing are kept grouped by node (a stable
-   counting-sort partition per level), so the histogram writes of one node stay in a
-   small, cache-resident block; pairs of nodes that cannot split are dropped;
+   partition per level), so the histogram of one node is built from one contiguous run
+   of pairs; pairs of nodes that cannot split are dropped;
 3. per level, every node draws its ``max_features`` features by hashing (seed, node key,
    feature) on the device (no generator, no host transfer), where a node's key hashes
    its tree's index and its path from the root, so the draws (and the forest) do not
-   depend on which trees grow together or on ``n_jobs``; for each feature slot,
-   ``scatter_add_`` accumulates per bin the count and the vector sum of the normals
-   (packed as two complex numbers, ``count + i n_x`` and ``n_y + i n_z``, which halves
-   the scatter work); a cumulative sum over bins gives both children of every
-   threshold, and all thresholds that change the partition and leave
-   ``min_samples_leaf`` rows on each side are scored at once by the children's
-   count-weighted vMF entropy ``n_L H(kappa_L) + n_R H(kappa_R)``;
+   depend on which trees grow together or on ``n_jobs``; per node and feature the
+   count and the vector sum of the normals are accumulated per bin, prefix sums over
+   bins give both children of every threshold, and all thresholds that change the
+   partition and leave ``min_samples_leaf`` rows on each side are scored by the
+   children's count-weighted vMF entropy ``n_L H(kappa_L) + n_R H(kappa_R)`` (in torch
+   ops: ``scatter_add_`` of two complex streams ``count + i n_x``, ``n_y + i n_z`` per
+   feature slot, a ``cumsum`` and one batched scoring of the level);
 4. a node splits at its best threshold when that lowers the entropy below the
    parent's ``n H(kappa)`` and the depth is below ``max_depth``; otherwise it is a leaf.
 
-On the CPU the split search runs over chunks of nodes whose histograms fit in cache;
-on a GPU it is one chunk and the level loop syncs with the host twice per level (the
-number of candidate thresholds; the next level's sizes). Nodes of all trees live in
+On a GPU the level loop syncs with the host twice per level (the number of candidate
+thresholds; the next level's sizes). Nodes of all trees live in
 one flat table in level order; a leaf points to itself with threshold ``+inf``, so
 prediction is ``depth`` rounds of 1-D gathers. See ``docs/forest.md`` for the choices
 and measurements.
@@ -42,6 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple, Optional, Union
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -499,7 +500,13 @@ def _quantile_edges(X: Tensor, n_bins: int, generator: torch.Generator, max_rows
         rows = torch.randperm(n, generator=generator)[:max_rows].to(X.device)
         X, n = X.index_select(0, rows), max_rows
     ranks = (torch.arange(1, n_bins, device=X.device) * n) // n_bins
-    return X.T.contiguous().sort(dim=1).values[:, ranks]  # (F, n_bins - 1)
+    columns = X.detach().T.contiguous()
+    if columns.device.type == "cpu":
+        # NumPy's vectorised sort is about 10x faster than torch's here (the same values)
+        ordered = torch.from_numpy(np.sort(columns.numpy(), axis=1))
+    else:
+        ordered = columns.sort(dim=1).values
+    return ordered[:, ranks]  # (F, n_bins - 1)
 
 
 def _bin(X: Tensor, edges: Tensor) -> Tensor:
@@ -525,9 +532,6 @@ def _bin(X: Tensor, edges: Tensor) -> Tensor:
 
 
 _MASK32 = 0xFFFFFFFF
-# Histogram cells (complex entries) per chunk of nodes on the CPU: 2^20 is 8 MiB at
-# float32, about what stays in cache next to the chunk's other temporaries.
-_CHUNK_CELLS = 2**20
 # Index tensors are int32 (faster gathers, half the traffic) while what they address is
 # smaller than this; a module constant so that tests can force the int64 path.
 _INT32_LIMIT = 2**31
@@ -689,21 +693,25 @@ def _grow_trees(
     the level's node list, ``key`` holds their draw keys) and one (tree, row) *pair* per
     in-bag row of an active node, held as its row ``offset`` and active-node index
     ``pnode``, grouped by node with rows ascending inside. Pairs of nodes that cannot
-    split are dropped when routed, so no later pass reads them. On a GPU (one chunk of
-    nodes) there are two host syncs per level, the number of candidate thresholds and
-    the next level's sizes; on the CPU, where syncs cost nothing, one more per chunk.
+    split are dropped when routed, so no later pass reads them. On a GPU there are two
+    host syncs per level, the number of candidate thresholds and the next level's sizes.
+    On the CPU in float32 the compiled search and routing find each node's pairs from
+    ``node_pairs`` and no ``pnode`` is kept.
     """
     device = rows.device
     n_trees, n_in = rows.shape
     flat_bins = binned.view(-1)
     offset = rows.reshape(-1).to(index_dtype)  # rows, ascending within each tree
     count, vsum = _root_statistics(stream, offset, n_trees, n_in)
-    pnode = torch.arange(n_trees, dtype=index_dtype, device=device).repeat_interleave(n_in)
     n_cand = n_trees if n_in >= 2 * min_samples_leaf else 0
     cand = torch.arange(n_cand, device=device)
     key = cand + first_tree  # a root's key is its tree's index
     node_pairs = torch.full((n_cand,), n_in, dtype=torch.int64, device=device)  # pairs per active node
-    work = _Workspace(offset.numel(), index_dtype, stream[0].dtype, device)
+    # the compiled loops (float32, CPU) find each node's pairs from node_pairs; the torch ops need pnode
+    compiled = device.type == "cpu" and stream[0].dtype == torch.complex64
+    if not compiled:
+        pnode = torch.arange(n_trees, dtype=index_dtype, device=device).repeat_interleave(n_in)
+        work = _Workspace(offset.numel(), index_dtype, stream[0].dtype, device)
 
     levels = []
     for level in range(max_depth + 1):
@@ -715,10 +723,16 @@ def _grow_trees(
         if level == max_depth or n_cand == 0:
             break
         feats = _draw_features(seed, key, binned.shape[0], max_features)  # (n_cand, m)
-        best, slot, b, left, total = _search_splits(
-            flat_bins, feats, offset, pnode, stream, node_pairs, n_rows=binned.shape[1], n_bins=n_bins,
-            min_samples_leaf=min_samples_leaf, work=work,
-        )
+        if compiled:
+            best, slot, b, left, total = _search_splits_compiled(
+                flat_bins, feats, offset, stream, node_pairs, n_rows=binned.shape[1], n_bins=n_bins,
+                min_samples_leaf=min_samples_leaf,
+            )
+        else:
+            best, slot, b, left, total = _search_splits(
+                flat_bins, feats, offset, pnode, stream, n_rows=binned.shape[1], n_bins=n_bins,
+                min_samples_leaf=min_samples_leaf, work=work,
+            )
         split, best_feature, b = _choose_splits(
             best, slot, b, feats, count.index_select(0, cand), vsum.index_select(0, cand)
         )
@@ -727,7 +741,11 @@ def _grow_trees(
         is_split[cand] = split
         child_stats = torch.stack([left, total - left], dim=1)  # (n_cand, 2, 4)
         active = (split[:, None] & (child_stats[..., 0] >= 2 * min_samples_leaf)).view(-1)  # (2 n_cand,)
-        if level + 1 < max_depth:
+        if level + 1 < max_depth and compiled:
+            n_split, n_cand, offset, next_active, node_pairs = _route_compiled(
+                flat_bins, offset, node_pairs, best_feature, b, split, active, n_rows=binned.shape[1],
+            )
+        elif level + 1 < max_depth:
             n_pairs = offset.numel()
             where = (best_feature * binned.shape[1]).to(index_dtype).index_select(0, pnode).add_(offset)
             n_split, n_cand, offset, pnode, next_active, node_pairs = _route(
@@ -767,45 +785,71 @@ def _search_splits(
     offset: Tensor,
     pnode: Tensor,
     stream: list[Tensor],
-    node_pairs: Tensor,
     *,
     n_rows: int,
     n_bins: int,
     min_samples_leaf: int,
     work: _Workspace,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """The best threshold of every active node of a level, over its drawn features ``feats`` (n, m).
+    """The best threshold of every active node of a level, over its drawn features ``feats`` (n, m), in torch ops.
 
-    Runs :func:`_best_splits` over chunks of whole nodes (their pairs are contiguous)
-    small enough for the chunk's histogram and candidates to stay in cache; on other
-    devices one chunk. Returns per node the best score (``inf`` without any valid
-    threshold), its feature slot and bin, and the left child's and the node's
-    statistics ``(count, n_x, n_y, n_z)`` :math:`(n, 4)`.
+    The path of devices other than the CPU (:func:`_best_splits` on the whole level);
+    the CPU runs :func:`_search_splits_compiled`, which returns the same. Returns per
+    node the best score (``inf`` without any valid threshold), its feature slot and bin,
+    and the left child's and the node's statistics ``(count, n_x, n_y, n_z)`` :math:`(n, 4)`.
     """
     device, dtype = offset.device, stream[0].real.dtype
-    n_cand, max_features = feats.shape
-    n_pairs = offset.numel()
+    n_cand = feats.shape[0]
     slot_start = (feats * n_rows).T.to(offset.dtype).contiguous()  # where each slot's feature starts in flat_bins
     sources = [s.index_select(0, offset) for s in stream]
-    per_chunk = max(1, _CHUNK_CELLS // (2 * max_features * n_bins)) if device.type == "cpu" else n_cand
-    if per_chunk >= n_cand:
-        bounds = [(0, n_cand, 0, n_pairs)]
-    else:
-        ends = list(range(per_chunk, n_cand, per_chunk))
-        starts = node_pairs.cumsum(0).index_select(0, torch.tensor(ends, device=device) - 1).tolist()  # host sync
-        nodes, pairs = [0, *ends, n_cand], [0, *starts, n_pairs]
-        bounds = list(zip(nodes[:-1], nodes[1:], pairs[:-1], pairs[1:]))
     best = torch.empty(n_cand, dtype=dtype, device=device)
     slot = torch.empty(n_cand, dtype=torch.long, device=device)
     b = torch.empty(n_cand, dtype=torch.long, device=device)
     left = torch.empty(n_cand, 4, dtype=dtype, device=device)
     total = torch.empty(n_cand, 4, dtype=dtype, device=device)
-    for k0, k1, p0, p1 in bounds:
-        work.hist = _best_splits(
-            flat_bins, slot_start[:, k0:k1], offset[p0:p1], pnode[p0:p1] - k0, [s[p0:p1] for s in sources],
-            n_bins, min_samples_leaf, work.hist, work.where[p0:p1], work.code[p0:p1], work.cell[p0:p1],
-            out=(best[k0:k1], slot[k0:k1], b[k0:k1], left[k0:k1], total[k0:k1]),
-        )
+    n_pairs = offset.numel()
+    work.hist = _best_splits(
+        flat_bins, slot_start, offset, pnode, sources, n_bins, min_samples_leaf, work.hist, work.where[:n_pairs],
+        work.code[:n_pairs], work.cell[:n_pairs], out=(best, slot, b, left, total),
+    )
+    return best, slot, b, left, total
+
+
+def _search_splits_compiled(
+    flat_bins: Tensor,
+    feats: Tensor,
+    offset: Tensor,
+    stream: list[Tensor],
+    node_pairs: Tensor,
+    *,
+    n_rows: int,
+    n_bins: int,
+    min_samples_leaf: int,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """:func:`_search_splits` on CPU tensors, by the compiled loop of ``sfs_torch._forest_kernel``.
+
+    ``node_pairs`` (n,) counts each active node's pairs (they are grouped by node). The
+    loop releases the GIL. Its float32 sums run in the same order as the torch ops';
+    the entropies may differ from theirs in the last bit (another ``log``), so a split
+    whose two best thresholds score within that rounding may go the other way.
+    """
+    from ._forest_kernel import best_splits  # Numba loads at the first CPU fit, not at import
+
+    n_cand = feats.shape[0]
+    dtype = stream[0].real.dtype
+    starts = torch.zeros(n_cand + 1, dtype=torch.int64)
+    torch.cumsum(node_pairs, 0, out=starts[1:])
+    best = torch.empty(n_cand, dtype=dtype)
+    slot = torch.empty(n_cand, dtype=torch.long)
+    b = torch.empty(n_cand, dtype=torch.long)
+    left = torch.empty(n_cand, 4, dtype=dtype)
+    total = torch.empty(n_cand, 4, dtype=dtype)
+    s0, s1 = (torch.view_as_real(s).numpy() for s in stream)
+    best_splits(
+        flat_bins.numpy(), n_rows, feats.contiguous().numpy(), offset.numpy(), starts.numpy(), s0, s1, n_bins,
+        min_samples_leaf, np.float32(MAX_KAPPA), np.float32(_MIN_KAPPA), best.numpy(), slot.numpy(), b.numpy(),
+        left.numpy(), total.numpy(),
+    )
     return best, slot, b, left, total
 
 
@@ -868,10 +912,10 @@ def _best_splits(
     *,
     out: tuple[Tensor, Tensor, Tensor, Tensor, Tensor],
 ) -> Tensor:
-    """Best threshold of each of a run of nodes; returns the (possibly grown) histogram buffer.
+    """Best threshold of each active node of a level; returns the (possibly grown) histogram buffer.
 
     ``slot_start`` (m, n) locates each node's features in ``flat_bins``; ``offset``,
-    ``pnode`` (node within the run) and the two complex ``sources`` describe the run's
+    ``pnode`` (active-node index) and the two complex ``sources`` describe the level's
     pairs, grouped by node. Writes into ``out``: the best score (``inf`` without any
     valid threshold), its slot and bin, and the left child's and the node's statistics
     ``(count, n_x, n_y, n_z)``.
@@ -970,3 +1014,32 @@ def _route(
     counts = kept.index_select(0, next_active)
     pnode = torch.repeat_interleave(torch.arange(n_active, dtype=pnode.dtype, device=device), counts, output_size=n_kept)
     return n_split, n_active, offset, pnode, next_active, counts
+
+
+def _route_compiled(
+    flat_bins: Tensor,
+    offset: Tensor,
+    node_pairs: Tensor,
+    split_feature: Tensor,
+    split_bin: Tensor,
+    split: Tensor,
+    active: Tensor,
+    *,
+    n_rows: int,
+) -> tuple[int, int, Tensor, Tensor, Tensor]:
+    """:func:`_route` on CPU tensors, by the compiled loop of ``sfs_torch._forest_kernel``.
+
+    The same kept pairs in the same order, found by node from ``node_pairs`` (their pair
+    counts) instead of a per-pair node index. Returns the numbers of split nodes and of
+    active children, the kept pairs' ``offset``, the active children as ``2 node + side``
+    and their pair counts.
+    """
+    from ._forest_kernel import route
+
+    starts = torch.zeros(node_pairs.numel() + 1, dtype=torch.int64)
+    torch.cumsum(node_pairs, 0, out=starts[1:])
+    kept = torch.empty_like(offset)
+    counts = torch.empty(active.numel(), dtype=torch.int64)
+    n_kept, n_active = route(flat_bins.numpy(), n_rows, offset.numpy(), starts.numpy(), split_feature.numpy(),
+                             split_bin.to(torch.uint8).numpy(), active.numpy(), kept.numpy(), counts.numpy())
+    return int(split.sum()), n_active, kept[:n_kept], _compact(active, n_active), counts[:n_active]

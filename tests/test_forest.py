@@ -1,4 +1,6 @@
 import math
+import subprocess
+import sys
 import threading
 
 import numpy as np
@@ -321,6 +323,20 @@ class TestFeatureDraws:
             assert stats.chisquare(joint.double().numpy()).pvalue > 1e-3
 
 
+def _torch_search(flat_bins, feats, offset, stream, node_pairs, *, n_rows, n_bins, min_samples_leaf):
+    pnode = torch.repeat_interleave(torch.arange(feats.shape[0], dtype=offset.dtype), node_pairs)
+    work = forest_module._Workspace(offset.numel(), offset.dtype, stream[0].dtype, offset.device)
+    return forest_module._search_splits(flat_bins, feats, offset, pnode, stream, n_rows=n_rows, n_bins=n_bins,
+                                        min_samples_leaf=min_samples_leaf, work=work)
+
+
+def test_import_does_not_load_numba():
+    # the compiled loops load at the first CPU fit (about a second), not at import
+    code = "import sys, sfs_torch, sfs_torch.forest, sfs_torch.pipeline; print('numba' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
 class TestGrowInternals:
     def test_compact(self):
         mask = torch.rand(1000, generator=torch.Generator().manual_seed(0)) > 0.7
@@ -336,17 +352,48 @@ class TestGrowInternals:
         for name in ("feature_", "threshold_", "child_", "mean_", "kappa_"):
             assert torch.equal(getattr(small, name), getattr(wide, name))
 
-    def test_node_chunks_give_the_same_forest(self, monkeypatch):
-        # the split search runs over chunks of nodes sized to the cache; any chunking
-        # (here down to one node per chunk) must find the same splits
-        X, normals = _smooth_data(6_000, noise=0.1, seed=6)
-        kw = dict(n_trees=3, max_depth=9, min_samples_leaf=4, max_features=3, n_bins=32)
-        whole = VMFForest(**kw).fit(X, normals)
-        for cells in (1, 2 * 3 * 32 * 5):  # 1 node, 5 nodes per chunk
-            monkeypatch.setattr(forest_module, "_CHUNK_CELLS", cells)
-            chunked = VMFForest(**kw).fit(X, normals)
-            for name in ("feature_", "threshold_", "child_", "mean_", "kappa_"):
-                assert torch.equal(getattr(whole, name), getattr(chunked, name))
+    def test_compiled_search_matches_the_torch_search(self, monkeypatch):
+        # the CPU's compiled split search against the torch ops that serve other devices,
+        # level by level on the same inputs: same thresholds, same statistics
+        X, normals = _smooth_data(8_000, noise=0.1, seed=6)
+        compiled = forest_module._search_splits_compiled
+        levels = []
+
+        def both(flat_bins, feats, offset, stream, node_pairs, *, n_rows, n_bins, min_samples_leaf):
+            ours = compiled(flat_bins, feats, offset, stream, node_pairs, n_rows=n_rows, n_bins=n_bins,
+                            min_samples_leaf=min_samples_leaf)
+            theirs = _torch_search(flat_bins, feats, offset, stream, node_pairs, n_rows=n_rows, n_bins=n_bins,
+                                   min_samples_leaf=min_samples_leaf)
+            levels.append((ours, theirs))
+            return theirs  # the whole fit follows the torch ops, so every level is compared
+
+        monkeypatch.setattr(forest_module, "_search_splits_compiled", both)
+        VMFForest(n_trees=3, max_depth=10, min_samples_leaf=4, max_features=3, n_bins=32, n_jobs=1).fit(X, normals)
+        assert len(levels) >= 20
+        for (best, slot, b, left, total), (best_t, slot_t, b_t, left_t, total_t) in levels:
+            found = torch.isfinite(best_t)
+            assert torch.equal(torch.isfinite(best), found)
+            torch.testing.assert_close(best[found], best_t[found], rtol=1e-5, atol=1e-3)
+            # other thresholds only where two score within rounding (the scores agree, above)
+            same = ((slot == slot_t) & (b == b_t))[found]
+            assert int((~same).sum()) <= max(1, same.numel() // 100)
+            found &= (slot == slot_t) & (b == b_t)
+            # the statistics of nodes that split (the others' are never read)
+            torch.testing.assert_close(total[found], total_t[found], rtol=1e-5, atol=1e-3)
+            torch.testing.assert_close(left[found], left_t[found], rtol=1e-5, atol=1e-3)
+            assert torch.equal(left[found, 0], left_t[found, 0]) and torch.equal(total[found, 0], total_t[found, 0])
+
+    def test_compiled_search_grows_as_accurate_a_forest(self, monkeypatch):
+        X, normals = _smooth_data(12_000, noise=0.1, seed=7)
+        X_test, normals_test = _smooth_data(4_000, noise=0.0, seed=8)
+        kw = dict(n_trees=4, max_depth=12, min_samples_leaf=5, max_features=3, n_bins=32)
+        errors = []
+        for path in ("compiled", "torch"):
+            if path == "torch":
+                monkeypatch.setattr(forest_module, "_search_splits_compiled", _torch_search)
+            pred = VMFForest(**kw).fit(X, normals).predict(X_test).mean
+            errors.append(torch.rad2deg(torch.acos((pred * normals_test).sum(1).clamp(-1, 1))).median())
+        assert abs(float(errors[0] - errors[1])) < 0.02
 
     def test_node_statistics_match_routing(self):
         # every node's vMF must be that of the training rows routed to it: checks the
