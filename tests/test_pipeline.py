@@ -563,11 +563,12 @@ class TestSaturatedImage:
     Grace for some seeds), the refit round kept (blobby/4046 under Uffizi), and the refit round
     dropped by the guard (a tilted capsule under Eucalyptus Grove), where the default used to
     return the unconstrained silhouette estimate, shading 9 % of its peak negative. Errors are
-    averaged over three training seeds and the four cases: with one seed, blobby/4046's median
-    moved by 0.5 deg from seed to seed.
+    averaged over six training seeds and the four cases: with one seed, blobby/4046's median
+    moved by 0.5 deg from seed to seed, and with three the mean of medians moved by 0.3 deg
+    when the forest's near-tied splits went the other way (compiled CPU search).
     """
 
-    SEEDS = (0, 1, 2)
+    SEEDS = (0, 1, 2, 3, 4, 5)
 
     @staticmethod
     def saturated(normals, mask, sh):
