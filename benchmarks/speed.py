@@ -4,7 +4,9 @@ Both source trees score the same test-side images (generated once, by this check
 their own subprocesses, alternately (this tree, the baseline, this tree, ...), so machine
 load shared by both shows in both columns. Each pass times an estimated-lighting call and
 a known-lighting call per image (the database is loaded before the clock starts) and
-records the per-stage times the estimate reports and each call's median angular error.
+records the per-stage times the estimate reports and each call's median angular error. A
+first tiny forest fit in each process, timed apart, takes the process's one-off costs
+(loading the forest's compiled CPU loops) out of the calls.
 
     git worktree add /tmp/base 578b209          # e.g. the commit before the speed work
     python benchmarks/speed.py --baseline /tmp/base \\
@@ -38,11 +40,17 @@ def _worker(tree: Path, scenes_path: Path, config: dict) -> None:
     import torch
 
     import sfs_torch
+    from sfs_torch.forest import VMFForest
     from sfs_torch.geometry_db import DatabaseConfig, load_database
     from sfs_torch.metrics import normal_metrics
 
     assert Path(sfs_torch.__file__).resolve().is_relative_to(tree.resolve()), sfs_torch.__file__
     load_database(DatabaseConfig(), progress=False)
+    # one-off costs of a process, outside the calls' clocks: a first fit loads (or compiles) the
+    # forest's compiled CPU loops, where the tree has them
+    start = time.perf_counter()
+    VMFForest(n_trees=1, max_depth=2, min_samples_leaf=1).fit(torch.rand(64, 3), torch.eye(3).repeat(22, 1)[:64])
+    print(json.dumps({"warm_up": time.perf_counter() - start}), flush=True)
     for scene in torch.load(scenes_path):
         for kind in ("estimated", "known"):
             start = time.perf_counter()
@@ -88,6 +96,7 @@ def main() -> None:
         parser.error(f"--baseline {args.baseline} holds no sfs_torch package")
     trees = {"this": (ROOT, args.config), "baseline": (args.baseline, args.baseline_config or args.config)}
     rows = []
+    warm_ups = {name: [] for name in trees}
     with tempfile.TemporaryDirectory() as tmp:
         scenes = Path(tmp) / "scenes.pt"
         _scenes(args.shapes, args.lights, args.resolution, scenes)
@@ -101,7 +110,11 @@ def main() -> None:
                     sys.exit(f"{name} tree failed:\n{out.stderr[-3000:]}")
                 for line in out.stdout.splitlines():
                     if line.startswith("{"):
-                        rows.append({"tree": name, "pass": p, **json.loads(line)})
+                        record = json.loads(line)
+                        if "warm_up" in record:
+                            warm_ups[name].append(record["warm_up"])
+                        else:
+                            rows.append({"tree": name, "pass": p, **record})
                 print(f"pass {p} {name}: done", flush=True)
     summary = {}
     print(f"\n{'call':<11}{'this s':>9}{'baseline s':>12}{'ratio':>8}{'this deg':>10}{'baseline deg':>14}")
@@ -120,8 +133,10 @@ def main() -> None:
         st = summary[kind]["stages"]
         for s in sorted(set(st["this"]) | set(st["baseline"])):
             print(f"  {s:<30}{st['this'].get(s, float('nan')):8.2f} | {st['baseline'].get(s, float('nan')):8.2f}")
+    print(f"\none-off per process (a first forest fit before the calls, median s): this "
+          f"{statistics.median(warm_ups['this']):.2f} | baseline {statistics.median(warm_ups['baseline']):.2f}")
     load = os.getloadavg()
-    summary.update({"images": args.shapes, "passes": args.passes, "resolution": args.resolution,
+    summary.update({"warm_up_seconds": warm_ups, "images": args.shapes, "passes": args.passes, "resolution": args.resolution,
                     "config": args.config, "baseline": str(args.baseline), "baseline_config": trees["baseline"][1],
                     "load_average": load, "rows": rows})
     print(f"\nload average {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}; {len(rows)} calls")
