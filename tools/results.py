@@ -1,7 +1,7 @@
 """Regenerate ``docs/RESULTS.md``: the paper's experiments (Richter & Roth 2015, Tables 1-3)
 run by ``sfs-torch-eval`` on the test side, next to the paper's numbers.
 
-    python tools/results.py                                  # the full run: ~12 min on 2 CPU cores
+    python tools/results.py                                  # the full run: ~8 min on 2 CPU cores
     python tools/results.py --preset quick --out /tmp/quick  # ~1 min: what tests/test_results.py runs
 
 Each *part* is one ``sfs-torch-eval`` run into ``<out>/<part>`` (``out`` defaults to
@@ -99,7 +99,7 @@ def _parts(focal: float, *, fewer: Tuple[str, ...] = ()) -> Tuple[Part, ...]:
 
 PRESETS: Dict[str, Preset] = {
     # The default database's 10 test-side shapes, each under its own R&H probe (shape k under
-    # probe k mod 7), 256 px as the README's benchmark: 10 images in every part. ~12 min on 2
+    # probe k mod 7), 256 px as the README's benchmark: 10 images in every part. ~8 min on 2
     # cores (150 estimate calls, each training a forest; `features`' 70 about 40% of it).
     "full": Preset(
         "full",
