@@ -1,7 +1,9 @@
 """The forest's split search on the CPU, compiled by Numba (``sfs_torch.forest``).
 
 One loop per active node of a tree level: accumulate the node's histogram for each of
-its drawn features (count and normal sum per bin, rows read once for all features),
+its drawn features (count and normal sum per bin, each pair read once for all features,
+from the pairs' own copy of their bins and statistics, which the routing loop carries
+along in pair order, so that the reads are sequential),
 sweep each histogram once, scoring the thresholds that change the partition and leave
 ``min_leaf`` rows on both sides by ``n_L H(kappa_L) + n_R H(kappa_R)``. It computes what
 ``forest._search_splits`` computes with torch ops (which serves other devices), with the
@@ -42,37 +44,35 @@ def _weighted_entropy(n, sx, sy, sz, max_kappa, min_kappa):  # pragma: no cover 
 
 
 @njit(nogil=True, cache=True)
-def best_splits(bins, n_rows, feats, offset, starts, s0, s1, n_bins, min_leaf, max_kappa, min_kappa,
+def best_splits(pair_bins, pair_stats, feats, starts, n_bins, min_leaf, max_kappa, min_kappa,
                 best, slot, bin_, left, total):  # pragma: no cover - compiled
     """Best threshold of every active node of a level, written into the output arrays.
 
-    ``bins`` (F * N,) uint8 feature-major; ``feats`` (n, m) each node's features;
-    ``offset`` the pairs' rows, node ``k``'s from ``starts[k]`` to ``starts[k + 1]``;
-    ``s0``, ``s1`` (N, 2) float32 each row's (1, n_x) and (n_y, n_z). Outputs per node:
-    ``best`` score (``inf`` without a valid threshold), its ``slot`` and ``bin_`` (ties
-    to the lowest slot, then bin), the left child's and the node's statistics ``left``,
-    ``total`` (n, 4) as (count, n_x, n_y, n_z) (``left`` is 0 without a threshold).
+    ``pair_bins`` (P, F) uint8 and ``pair_stats`` (P, 4) float32 (1, n_x, n_y, n_z) are
+    the (tree, row) pairs' bins and statistics in pair order: node ``k``'s pairs are rows
+    ``starts[k]`` to ``starts[k + 1]``; ``feats`` (n, m) each node's features. Outputs
+    per node: ``best`` score (``inf`` without a valid threshold), its ``slot`` and
+    ``bin_`` (ties to the lowest slot, then bin), the left child's and the node's
+    statistics ``left``, ``total`` (n, 4) as (count, n_x, n_y, n_z) (``left`` is 0
+    without a threshold).
     """
     m = feats.shape[1]
     hist = np.zeros((m, n_bins, 4), np.float32)  # zero between nodes: each node clears the bins it used
-    base = np.zeros(m, np.int64)
     low = np.zeros(m, np.int64)
     high = np.zeros(m, np.int64)
     dmin = float64(min_leaf)
     for k in range(feats.shape[0]):
         for j in range(m):
-            base[j] = feats[k, j] * n_rows
             low[j], high[j] = n_bins, -1
         a0 = a1 = a2 = a3 = 0.0  # the node's statistics, in float64 as torch's cumsum
         for p in range(starts[k], starts[k + 1]):
-            r = offset[p]
-            v0, v1, v2, v3 = s0[r, 0], s0[r, 1], s1[r, 0], s1[r, 1]
+            v0, v1, v2, v3 = pair_stats[p, 0], pair_stats[p, 1], pair_stats[p, 2], pair_stats[p, 3]
             a0 += v0
             a1 += v1
             a2 += v2
             a3 += v3
             for j in range(m):
-                b = bins[base[j] + r]
+                b = pair_bins[p, feats[k, j]]
                 hist[j, b, 0] += v0
                 hist[j, b, 1] += v1
                 hist[j, b, 2] += v2
@@ -108,27 +108,28 @@ def best_splits(bins, n_rows, feats, offset, starts, s0, s1, n_bins, min_leaf, m
 
 
 @njit(nogil=True, cache=True)
-def route(bins, n_rows, offset, starts, feature, split_bin, active, out_offset, out_counts):  # pragma: no cover
+def route(pair_bins, pair_stats, starts, feature, split_bin, active, out_bins, out_stats, out_counts):  # pragma: no cover
     """Send the pairs of every split node to its children; keep those of active children.
 
-    Node ``k``'s pairs (``offset[starts[k]:starts[k + 1]]``) go left when their bin of
-    ``feature[k]`` is at most ``split_bin[k]``; ``active`` (2 n,) says which children
-    keep theirs. Writes the kept rows into ``out_offset`` grouped by child (left before
-    right, rows ascending inside) and each active child's pair count into
-    ``out_counts``; returns the numbers of kept pairs and of active children.
+    Node ``k``'s pairs (rows ``starts[k]`` to ``starts[k + 1]`` of ``pair_bins`` and
+    ``pair_stats``) go left when their bin of ``feature[k]`` is at most ``split_bin[k]``;
+    ``active`` (2 n,) says which children keep theirs. Copies the kept pairs' bins and
+    statistics into ``out_bins``, ``out_stats`` grouped by child (left before right,
+    pair order kept inside) and each active child's pair count into ``out_counts``;
+    returns the numbers of kept pairs and of active children.
     """
     kept = 0
     n_active = 0
     for k in range(feature.shape[0]):
-        base = feature[k] * n_rows
+        f = feature[k]
         for side in range(2):
             if not active[2 * k + side]:
                 continue
             first = kept
             for p in range(starts[k], starts[k + 1]):
-                r = offset[p]
-                if (bins[base + r] > split_bin[k]) == side:
-                    out_offset[kept] = r
+                if (pair_bins[p, f] > split_bin[k]) == side:
+                    out_bins[kept, :] = pair_bins[p, :]
+                    out_stats[kept, :] = pair_stats[p, :]
                     kept += 1
             out_counts[n_active] = kept - first
             n_active += 1

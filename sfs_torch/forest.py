@@ -660,6 +660,8 @@ def _grow(
     stream = _row_streams(normals)
     if normals.device.type != "cpu":
         return _assemble_levels([_grow_trees(binned, stream, rows, 0, **kw)])
+    if normals.dtype == torch.float32:  # the compiled loops' tables, shared by the trees
+        kw["rows_table"] = _rows_table(binned, stream)
 
     def grow_one(tree: int) -> list[_Level]:
         return _grow_trees(binned, stream, rows[tree : tree + 1], tree, **kw)
@@ -683,6 +685,7 @@ def _grow_trees(
     n_bins: int,
     seed: int,
     index_dtype: torch.dtype,
+    rows_table: Optional[tuple[Tensor, Tensor]] = None,
 ) -> list[_Level]:
     """Grow a group of trees (trees ``first_tree, first_tree + 1, ...``) level by level.
 
@@ -707,9 +710,12 @@ def _grow_trees(
     cand = torch.arange(n_cand, device=device)
     key = cand + first_tree  # a root's key is its tree's index
     node_pairs = torch.full((n_cand,), n_in, dtype=torch.int64, device=device)  # pairs per active node
-    # the compiled loops (float32, CPU) find each node's pairs from node_pairs; the torch ops need pnode
-    compiled = device.type == "cpu" and stream[0].dtype == torch.complex64
-    if not compiled:
+    # the compiled loops (rows_table given: float32 on the CPU) find each node's pairs from
+    # node_pairs and read the pairs' own bins and statistics; the torch ops need pnode
+    compiled = rows_table is not None
+    if compiled:
+        pairs = _PairBuffers(*rows_table, offset)
+    else:
         pnode = torch.arange(n_trees, dtype=index_dtype, device=device).repeat_interleave(n_in)
         work = _Workspace(offset.numel(), index_dtype, stream[0].dtype, device)
 
@@ -725,8 +731,7 @@ def _grow_trees(
         feats = _draw_features(seed, key, binned.shape[0], max_features)  # (n_cand, m)
         if compiled:
             best, slot, b, left, total = _search_splits_compiled(
-                flat_bins, feats, offset, stream, node_pairs, n_rows=binned.shape[1], n_bins=n_bins,
-                min_samples_leaf=min_samples_leaf,
+                pairs, feats, node_pairs, n_bins=n_bins, min_samples_leaf=min_samples_leaf,
             )
         else:
             best, slot, b, left, total = _search_splits(
@@ -742,9 +747,7 @@ def _grow_trees(
         child_stats = torch.stack([left, total - left], dim=1)  # (n_cand, 2, 4)
         active = (split[:, None] & (child_stats[..., 0] >= 2 * min_samples_leaf)).view(-1)  # (2 n_cand,)
         if level + 1 < max_depth and compiled:
-            n_split, n_cand, offset, next_active, node_pairs = _route_compiled(
-                flat_bins, offset, node_pairs, best_feature, b, split, active, n_rows=binned.shape[1],
-            )
+            n_split, n_cand, next_active, node_pairs = _route_compiled(pairs, node_pairs, best_feature, b, split, active)
         elif level + 1 < max_depth:
             n_pairs = offset.numel()
             where = (best_feature * binned.shape[1]).to(index_dtype).index_select(0, pnode).add_(offset)
@@ -761,7 +764,7 @@ def _grow_trees(
         cand = 2 * (split.cumsum(0) - 1).index_select(0, parent) + side
         key = _child_keys(key.index_select(0, parent), side)
         logger.debug("trees %d+%d, level %d: %d of %d nodes split, %d pairs",
-                     first_tree, n_trees, level, n_split, n_level, offset.numel())
+                     first_tree, n_trees, level, n_split, n_level, int(node_pairs.sum()))
     return levels
 
 
@@ -815,18 +818,45 @@ def _search_splits(
     return best, slot, b, left, total
 
 
+def _rows_table(binned: Tensor, stream: list[Tensor]) -> tuple[Tensor, Tensor]:
+    """Each row's bins ``(N, F)`` uint8 and statistics ``(N, 4)`` float32 (1, n_x, n_y, n_z), row-major."""
+    return binned.T.contiguous(), torch.cat([torch.view_as_real(s) for s in stream], 1)
+
+
+class _PairBuffers:
+    """The bins and statistics of a tree group's (tree, row) pairs, in pair order, for the
+    compiled loops: gathered once from the rows' tables, then moved with the pairs by
+    each routing into a second buffer (the two swap roles), so that every read of the
+    loops is sequential. ``count`` pairs are current."""
+
+    def __init__(self, row_bins: Tensor, row_stats: Tensor, rows: Tensor):
+        self.bins = row_bins.index_select(0, rows)
+        self.stats = row_stats.index_select(0, rows)
+        self.spare_bins, self.spare_stats = torch.empty_like(self.bins), torch.empty_like(self.stats)
+        self.count = rows.numel()
+
+    def swap(self, count: int) -> None:
+        self.bins, self.spare_bins = self.spare_bins, self.bins
+        self.stats, self.spare_stats = self.spare_stats, self.stats
+        self.count = count
+
+
+def _node_starts(node_pairs: Tensor) -> Tensor:
+    # where each node's pairs start, and the end: (n + 1,)
+    starts = torch.zeros(node_pairs.numel() + 1, dtype=torch.int64)
+    torch.cumsum(node_pairs, 0, out=starts[1:])
+    return starts
+
+
 def _search_splits_compiled(
-    flat_bins: Tensor,
+    pairs: _PairBuffers,
     feats: Tensor,
-    offset: Tensor,
-    stream: list[Tensor],
     node_pairs: Tensor,
     *,
-    n_rows: int,
     n_bins: int,
     min_samples_leaf: int,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """:func:`_search_splits` on CPU tensors, by the compiled loop of ``sfs_torch._forest_kernel``.
+    """:func:`_search_splits` on the CPU, by the compiled loop of ``sfs_torch._forest_kernel``.
 
     ``node_pairs`` (n,) counts each active node's pairs (they are grouped by node). The
     loop releases the GIL. Its float32 sums run in the same order as the torch ops';
@@ -836,19 +866,15 @@ def _search_splits_compiled(
     from ._forest_kernel import best_splits  # Numba loads at the first CPU fit, not at import
 
     n_cand = feats.shape[0]
-    dtype = stream[0].real.dtype
-    starts = torch.zeros(n_cand + 1, dtype=torch.int64)
-    torch.cumsum(node_pairs, 0, out=starts[1:])
-    best = torch.empty(n_cand, dtype=dtype)
+    best = torch.empty(n_cand)
     slot = torch.empty(n_cand, dtype=torch.long)
     b = torch.empty(n_cand, dtype=torch.long)
-    left = torch.empty(n_cand, 4, dtype=dtype)
-    total = torch.empty(n_cand, 4, dtype=dtype)
-    s0, s1 = (torch.view_as_real(s).numpy() for s in stream)
+    left = torch.empty(n_cand, 4)
+    total = torch.empty(n_cand, 4)
     best_splits(
-        flat_bins.numpy(), n_rows, feats.contiguous().numpy(), offset.numpy(), starts.numpy(), s0, s1, n_bins,
-        min_samples_leaf, np.float32(MAX_KAPPA), np.float32(_MIN_KAPPA), best.numpy(), slot.numpy(), b.numpy(),
-        left.numpy(), total.numpy(),
+        pairs.bins[: pairs.count].numpy(), pairs.stats[: pairs.count].numpy(), feats.contiguous().numpy(),
+        _node_starts(node_pairs).numpy(), n_bins, min_samples_leaf, np.float32(MAX_KAPPA), np.float32(_MIN_KAPPA),
+        best.numpy(), slot.numpy(), b.numpy(), left.numpy(), total.numpy(),
     )
     return best, slot, b, left, total
 
@@ -1017,29 +1043,27 @@ def _route(
 
 
 def _route_compiled(
-    flat_bins: Tensor,
-    offset: Tensor,
+    pairs: _PairBuffers,
     node_pairs: Tensor,
     split_feature: Tensor,
     split_bin: Tensor,
     split: Tensor,
     active: Tensor,
-    *,
-    n_rows: int,
-) -> tuple[int, int, Tensor, Tensor, Tensor]:
-    """:func:`_route` on CPU tensors, by the compiled loop of ``sfs_torch._forest_kernel``.
+) -> tuple[int, int, Tensor, Tensor]:
+    """:func:`_route` on the CPU, by the compiled loop of ``sfs_torch._forest_kernel``.
 
     The same kept pairs in the same order, found by node from ``node_pairs`` (their pair
-    counts) instead of a per-pair node index. Returns the numbers of split nodes and of
-    active children, the kept pairs' ``offset``, the active children as ``2 node + side``
-    and their pair counts.
+    counts); their bins and statistics move into ``pairs``' other buffer. Returns the
+    numbers of split nodes and of active children, the active children as ``2 node +
+    side`` and their pair counts.
     """
     from ._forest_kernel import route
 
-    starts = torch.zeros(node_pairs.numel() + 1, dtype=torch.int64)
-    torch.cumsum(node_pairs, 0, out=starts[1:])
-    kept = torch.empty_like(offset)
     counts = torch.empty(active.numel(), dtype=torch.int64)
-    n_kept, n_active = route(flat_bins.numpy(), n_rows, offset.numpy(), starts.numpy(), split_feature.numpy(),
-                             split_bin.to(torch.uint8).numpy(), active.numpy(), kept.numpy(), counts.numpy())
-    return int(split.sum()), n_active, kept[:n_kept], _compact(active, n_active), counts[:n_active]
+    n_kept, n_active = route(
+        pairs.bins[: pairs.count].numpy(), pairs.stats[: pairs.count].numpy(), _node_starts(node_pairs).numpy(),
+        split_feature.numpy(), split_bin.to(torch.uint8).numpy(), active.numpy(), pairs.spare_bins.numpy(),
+        pairs.spare_stats.numpy(), counts.numpy(),
+    )
+    pairs.swap(n_kept)
+    return int(split.sum()), n_active, _compact(active, n_active), counts[:n_active]

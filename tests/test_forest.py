@@ -323,18 +323,17 @@ class TestFeatureDraws:
             assert stats.chisquare(joint.double().numpy()).pvalue > 1e-3
 
 
-def _torch_search(flat_bins, feats, offset, stream, node_pairs, *, n_rows, n_bins, min_samples_leaf):
-    pnode = torch.repeat_interleave(torch.arange(feats.shape[0], dtype=offset.dtype), node_pairs)
-    work = forest_module._Workspace(offset.numel(), offset.dtype, stream[0].dtype, offset.device)
-    return forest_module._search_splits(flat_bins, feats, offset, pnode, stream, n_rows=n_rows, n_bins=n_bins,
-                                        min_samples_leaf=min_samples_leaf, work=work)
-
-
-def test_import_does_not_load_numba():
-    # the compiled loops load at the first CPU fit (about a second), not at import
-    code = "import sys, sfs_torch, sfs_torch.forest, sfs_torch.pipeline; print('numba' in sys.modules)"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "False"
+def _torch_search(pairs, feats, node_pairs, *, n_bins, min_samples_leaf):
+    # the torch ops on the compiled search's arguments: the pairs' own bins and statistics
+    # as a table of as many rows (feature-major), and pnode from node_pairs
+    n_pairs = pairs.count
+    stats = pairs.stats[:n_pairs]
+    stream = [torch.complex(stats[:, 0], stats[:, 1]), torch.complex(stats[:, 2], stats[:, 3])]
+    offset = torch.arange(n_pairs, dtype=torch.int32)
+    pnode = torch.repeat_interleave(torch.arange(feats.shape[0], dtype=torch.int32), node_pairs)
+    work = forest_module._Workspace(n_pairs, torch.int32, stream[0].dtype, offset.device)
+    return forest_module._search_splits(pairs.bins[:n_pairs].T.contiguous().view(-1), feats, offset, pnode, stream,
+                                        n_rows=n_pairs, n_bins=n_bins, min_samples_leaf=min_samples_leaf, work=work)
 
 
 class TestGrowInternals:
@@ -359,11 +358,9 @@ class TestGrowInternals:
         compiled = forest_module._search_splits_compiled
         levels = []
 
-        def both(flat_bins, feats, offset, stream, node_pairs, *, n_rows, n_bins, min_samples_leaf):
-            ours = compiled(flat_bins, feats, offset, stream, node_pairs, n_rows=n_rows, n_bins=n_bins,
-                            min_samples_leaf=min_samples_leaf)
-            theirs = _torch_search(flat_bins, feats, offset, stream, node_pairs, n_rows=n_rows, n_bins=n_bins,
-                                   min_samples_leaf=min_samples_leaf)
+        def both(pairs, feats, node_pairs, *, n_bins, min_samples_leaf):
+            ours = compiled(pairs, feats, node_pairs, n_bins=n_bins, min_samples_leaf=min_samples_leaf)
+            theirs = _torch_search(pairs, feats, node_pairs, n_bins=n_bins, min_samples_leaf=min_samples_leaf)
             levels.append((ours, theirs))
             return theirs  # the whole fit follows the torch ops, so every level is compared
 
@@ -466,7 +463,9 @@ class TestGrowInternals:
             rows = _sample_rows(len(X), 4, 0.9, g, X.device)
             kw = dict(max_depth=9, min_samples_leaf=4, max_features=3, n_bins=32, seed=0)
             per_tree = _grow(binned, normals, rows, n_jobs=2, **kw)
-            one = _assemble_levels([_grow_trees(binned, _row_streams(normals), rows, 0, index_dtype=torch.int32, **kw)])
+            stream = _row_streams(normals)
+            compiled = dict(rows_table=forest_module._rows_table(binned, stream)) if dtype == torch.float32 else {}
+            one = _assemble_levels([_grow_trees(binned, stream, rows, 0, index_dtype=torch.int32, **compiled, **kw)])
             assert per_tree["depth"] == one["depth"] == 9
             for name in ("feature", "bin", "child", "count", "sum"):
                 assert torch.equal(per_tree[name], one[name]), name
