@@ -1,13 +1,13 @@
-"""The forest's split search on the CPU, compiled by Numba (``sfs_torch.forest``).
+"""The forest's split search and routing on the CPU, compiled by Numba (``sfs_torch.forest``).
 
-One loop per active node of a tree level: accumulate the node's histogram for each of
-its drawn features (count and normal sum per bin, each pair read once for all features,
-from the pairs' own copy of their bins and statistics, which the routing loop carries
-along in pair order, so that the reads are sequential),
-sweep each histogram once, scoring the thresholds that change the partition and leave
+``best_splits`` runs one loop per active node of a tree level: it accumulates the node's
+histogram for each of its drawn features (count and normal sum per bin; each pair is
+read once for all features, from the pair's own copy of its bins and statistics, which
+``route`` moves along with the pairs, so that every read is sequential), then sweeps
+each histogram once, scoring the thresholds that change the partition and leave
 ``min_leaf`` rows on both sides by ``n_L H(kappa_L) + n_R H(kappa_R)``. It computes what
-``forest._search_splits`` computes with torch ops (which serves other devices), with the
-histogram of one node in L1 cache and no pass over empty bins; the function releases
+``forest._search_splits`` computes with torch ops (which serve other devices), with the
+histogram of one node in L1 cache and no pass over empty bins. Both functions release
 the GIL, so the trees grown in threads run on all cores.
 
 Imported by ``sfs_torch.forest`` at the first CPU fit (compiling takes a few seconds,

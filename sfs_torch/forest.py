@@ -639,9 +639,9 @@ def _grow(
     """Grow the trees whose in-bag ``rows`` (T, n_in) are given, on binned features ``(F, N)`` uint8.
 
     On the CPU every tree grows on its own (:func:`_grow_trees` on one tree), ``n_jobs``
-    of them at a time in threads: the hot scatter-adds are single-threaded in ATen and
-    most per-level ops are small, while torch ops release the GIL, so threads over trees
-    use the cores that intra-op parallelism leaves idle. A tree's work does not depend on the others, so the forest
+    of them at a time in threads, on the compiled loops in float32 (:func:`_rows_table`
+    is built once for all trees) and on torch ops in float64; both release the GIL, so
+    the threads use the cores. A tree's work does not depend on the others, so the forest
     is the same bit for bit for any ``n_jobs``. On other devices all trees grow as one
     group in the calling thread (a GPU parallelises within each op).
 
@@ -698,8 +698,10 @@ def _grow_trees(
     ``pnode``, grouped by node with rows ascending inside. Pairs of nodes that cannot
     split are dropped when routed, so no later pass reads them. On a GPU there are two
     host syncs per level, the number of candidate thresholds and the next level's sizes.
-    On the CPU in float32 the compiled search and routing find each node's pairs from
-    ``node_pairs`` and no ``pnode`` is kept.
+    With ``rows_table`` (:func:`_rows_table`; float32 on the CPU) the compiled search and
+    routing run instead of the torch ops, on the pairs' own copies of their bins and
+    statistics (:class:`_PairBuffers`), finding each node's pairs from ``node_pairs``;
+    no ``pnode`` is kept.
     """
     device = rows.device
     n_trees, n_in = rows.shape
