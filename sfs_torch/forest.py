@@ -798,8 +798,9 @@ def _search_splits(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """The best threshold of every active node of a level, over its drawn features ``feats`` (n, m), in torch ops.
 
-    The path of devices other than the CPU (:func:`_best_splits` on the whole level);
-    the CPU runs :func:`_search_splits_compiled`, which returns the same. Returns per
+    The path of other devices and of float64 on the CPU (:func:`_best_splits` on the
+    whole level); float32 on the CPU runs :func:`_search_splits_compiled`, which returns
+    the same. Returns per
     node the best score (``inf`` without any valid threshold), its feature slot and bin,
     and the left child's and the node's statistics ``(count, n_x, n_y, n_z)`` :math:`(n, 4)`.
     """
@@ -861,8 +862,9 @@ def _search_splits_compiled(
     """:func:`_search_splits` on the CPU, by the compiled loop of ``sfs_torch._forest_kernel``.
 
     ``node_pairs`` (n,) counts each active node's pairs (they are grouped by node). The
-    loop releases the GIL. Its float32 sums run in the same order as the torch ops';
-    the entropies may differ from theirs in the last bit (another ``log``), so a split
+    loop releases the GIL. Its per-bin float32 sums and float64 prefix sums run as the
+    torch ops' do (the node's total is summed over its pairs rather than its bins), and
+    its entropies may differ from theirs in the last bit (another ``log``), so a split
     whose two best thresholds score within that rounding may go the other way.
     """
     from ._forest_kernel import best_splits  # Numba loads at the first CPU fit, not at import
