@@ -336,6 +336,13 @@ def _torch_search(pairs, feats, node_pairs, *, n_bins, min_samples_leaf):
                                         n_rows=n_pairs, n_bins=n_bins, min_samples_leaf=min_samples_leaf, work=work)
 
 
+def test_import_does_not_load_numba():
+    # the compiled loops load at the first CPU fit (about a second), not at import
+    code = "import sys, sfs_torch, sfs_torch.forest, sfs_torch.pipeline; print('numba' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
 class TestGrowInternals:
     def test_compact(self):
         mask = torch.rand(1000, generator=torch.Generator().manual_seed(0)) > 0.7
