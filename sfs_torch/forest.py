@@ -711,12 +711,12 @@ def _grow_trees(
     n_cand = n_trees if n_in >= 2 * min_samples_leaf else 0
     cand = torch.arange(n_cand, device=device)
     key = cand + first_tree  # a root's key is its tree's index
-    node_pairs = torch.full((n_cand,), n_in, dtype=torch.int64, device=device)  # pairs per active node
     # the compiled loops (rows_table given: float32 on the CPU) find each node's pairs from
     # node_pairs and read the pairs' own bins and statistics; the torch ops need pnode
     compiled = rows_table is not None
     if compiled:
         pairs = _PairBuffers(*rows_table, offset)
+        node_pairs = torch.full((n_cand,), n_in, dtype=torch.int64)  # pairs per active node
     else:
         pnode = torch.arange(n_trees, dtype=index_dtype, device=device).repeat_interleave(n_in)
         work = _Workspace(offset.numel(), index_dtype, stream[0].dtype, device)
@@ -753,7 +753,7 @@ def _grow_trees(
         elif level + 1 < max_depth:
             n_pairs = offset.numel()
             where = (best_feature * binned.shape[1]).to(index_dtype).index_select(0, pnode).add_(offset)
-            n_split, n_cand, offset, pnode, next_active, node_pairs = _route(
+            n_split, n_cand, offset, pnode, next_active = _route(
                 flat_bins, where, offset, pnode, b, split, active, work.code[:n_pairs], work.pair_index[:n_pairs],
             )
         else:  # the children are leaves: no pair needs routing
@@ -766,7 +766,7 @@ def _grow_trees(
         cand = 2 * (split.cumsum(0) - 1).index_select(0, parent) + side
         key = _child_keys(key.index_select(0, parent), side)
         logger.debug("trees %d+%d, level %d: %d of %d nodes split, %d pairs",
-                     first_tree, n_trees, level, n_split, n_level, int(node_pairs.sum()))
+                     first_tree, n_trees, level, n_split, n_level, pairs.count if compiled else offset.numel())
     return levels
 
 
@@ -798,27 +798,67 @@ def _search_splits(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """The best threshold of every active node of a level, over its drawn features ``feats`` (n, m), in torch ops.
 
-    The path of other devices and of float64 on the CPU (:func:`_best_splits` on the
-    whole level); float32 on the CPU runs :func:`_search_splits_compiled`, which returns
-    the same. Returns per
-    node the best score (``inf`` without any valid threshold), its feature slot and bin,
-    and the left child's and the node's statistics ``(count, n_x, n_y, n_z)`` :math:`(n, 4)`.
+    The path of other devices and of float64 on the CPU; float32 on the CPU runs
+    :func:`_search_splits_compiled`, which returns the same. ``offset`` and ``pnode``
+    (active-node index) describe the level's pairs, grouped by node. Returns per node the
+    best score (``inf`` without any valid threshold), its feature slot and bin, and the
+    left child's and the node's statistics ``(count, n_x, n_y, n_z)`` :math:`(n, 4)`.
     """
-    device, dtype = offset.device, stream[0].real.dtype
-    n_cand = feats.shape[0]
+    n_nodes, max_features = feats.shape
     slot_start = (feats * n_rows).T.to(offset.dtype).contiguous()  # where each slot's feature starts in flat_bins
     sources = [s.index_select(0, offset) for s in stream]
-    best = torch.empty(n_cand, dtype=dtype, device=device)
-    slot = torch.empty(n_cand, dtype=torch.long, device=device)
-    b = torch.empty(n_cand, dtype=torch.long, device=device)
-    left = torch.empty(n_cand, 4, dtype=dtype, device=device)
-    total = torch.empty(n_cand, 4, dtype=dtype, device=device)
     n_pairs = offset.numel()
-    work.hist = _best_splits(
-        flat_bins, slot_start, offset, pnode, sources, n_bins, min_samples_leaf, work.hist, work.where[:n_pairs],
-        work.code[:n_pairs], work.cell[:n_pairs], out=(best, slot, b, left, total),
-    )
-    return best, slot, b, left, total
+    where, code, cell = work.where[:n_pairs], work.code[:n_pairs], work.cell[:n_pairs]
+    # Histogram, laid out (stream, slot, node, bin): per slot, every pair adds its two
+    # complex statistics to its node's bin of the slot's feature. Pairs are grouped by
+    # node, so the writes of one slot sweep its block once, in order.
+    cells = n_nodes * n_bins
+    if work.hist.numel() < 2 * max_features * cells:
+        work.hist = torch.empty(2 * max_features * cells, dtype=work.hist.dtype, device=work.hist.device)
+    hist = work.hist[: 2 * max_features * cells].view(2, max_features, cells).zero_()
+    base = pnode.to(torch.int64, copy=True).mul_(n_bins)
+    for j in range(max_features):
+        torch.index_select(slot_start[j], 0, pnode, out=where).add_(offset)
+        cell.copy_(torch.index_select(flat_bins, 0, where, out=code)).add_(base)
+        hist[0, j].scatter_add_(0, cell, sources[0])
+        hist[1, j].scatter_add_(0, cell, sources[1])
+    del base, sources
+
+    # Score only thresholds that change the partition (the bin is not empty) and
+    # leave min_samples_leaf rows on both sides: deep nodes hold fewer rows than
+    # bins, so this skips most candidates there.
+    hist = hist.view(2, max_features, n_nodes, n_bins)
+    ok = torch.view_as_real(hist[0])[..., :-1, 0] > 0
+    cum = hist.cumsum_(dim=3)
+    cum_count = torch.view_as_real(cum[0])[..., 0]
+    n_left = cum_count[..., :-1]
+    ok &= n_left >= min_samples_leaf
+    ok &= n_left <= cum_count[..., -1:] - min_samples_leaf
+    cand_slot, owner, cand_bin = ok.nonzero().unbind(1)  # candidates (slot, node, bin); host sync
+    del ok, n_left, cum_count
+    cum0, cum1 = cum[0].view(-1), cum[1].view(-1)
+    at = (cand_slot * n_nodes + owner).mul_(n_bins)  # cell of bin 0 of (slot, node)
+    total = [cum0.index_select(0, at + n_bins - 1), cum1.index_select(0, at + n_bins - 1)]
+    at += cand_bin
+    left = [cum0.index_select(0, at), cum1.index_select(0, at)]
+    score = _weighted_entropy(*_stats(*left), max_kappa=MAX_KAPPA)
+    score += _weighted_entropy(*_stats(total[0].sub_(left[0]), total[1].sub_(left[1])), max_kappa=MAX_KAPPA)
+    del left, total, cand_slot, cand_bin
+    # argmin per node, ties to the lowest (slot, bin) as a dense argmin would: for a
+    # fixed node, the cell grows with (slot, bin)
+    best = torch.full((n_nodes,), math.inf, dtype=score.dtype, device=score.device)
+    best.scatter_reduce_(0, owner, score, "amin")
+    winner = score == best.index_select(0, owner)
+    none = max_features * cells  # past every cell
+    arg = torch.full((n_nodes,), none, dtype=torch.long, device=best.device)
+    arg.scatter_reduce_(0, owner, torch.where(winner, at, none), "amin")
+    arg.masked_fill_(arg == none, 0)  # nodes without a valid threshold
+    slot = torch.div(arg, cells, rounding_mode="floor")
+    b = torch.remainder(arg, n_bins)
+    left_stats = torch.stack(_stats(cum0.index_select(0, arg), cum1.index_select(0, arg)), dim=1)
+    at = arg - b + (n_bins - 1)
+    total_stats = torch.stack(_stats(cum0.index_select(0, at), cum1.index_select(0, at)), dim=1)
+    return best, slot, b, left_stats, total_stats
 
 
 def _rows_table(binned: Tensor, stream: list[Tensor]) -> tuple[Tensor, Tensor]:
@@ -927,82 +967,6 @@ def _assemble_levels(groups: list[list[_Level]]) -> dict:
     return {**{name: torch.cat(value) for name, value in parts.items()}, "depth": depth}
 
 
-def _best_splits(
-    flat_bins: Tensor,
-    slot_start: Tensor,
-    offset: Tensor,
-    pnode: Tensor,
-    sources: list[Tensor],
-    n_bins: int,
-    min_samples_leaf: int,
-    hist_buffer: Tensor,
-    where: Tensor,
-    code: Tensor,
-    cell: Tensor,
-    *,
-    out: tuple[Tensor, Tensor, Tensor, Tensor, Tensor],
-) -> Tensor:
-    """Best threshold of each active node of a level; returns the (possibly grown) histogram buffer.
-
-    ``slot_start`` (m, n) locates each node's features in ``flat_bins``; ``offset``,
-    ``pnode`` (active-node index) and the two complex ``sources`` describe the level's
-    pairs, grouped by node. Writes into ``out``: the best score (``inf`` without any
-    valid threshold), its slot and bin, and the left child's and the node's statistics
-    ``(count, n_x, n_y, n_z)``.
-    """
-    max_features, n_nodes = slot_start.shape
-    best, slot, b, left_stats, total_stats = out
-    # Histogram, laid out (stream, slot, node, bin): per slot, every pair adds its two
-    # complex statistics to its node's bin of the slot's feature. Pairs are grouped by
-    # node, so the writes of one slot sweep its block once, in order.
-    cells = n_nodes * n_bins
-    if hist_buffer.numel() < 2 * max_features * cells:
-        hist_buffer = torch.empty(2 * max_features * cells, dtype=hist_buffer.dtype, device=hist_buffer.device)
-    hist = hist_buffer[: 2 * max_features * cells].view(2, max_features, cells).zero_()
-    base = pnode.to(torch.int64, copy=True).mul_(n_bins)
-    for j in range(max_features):
-        torch.index_select(slot_start[j], 0, pnode, out=where).add_(offset)
-        cell.copy_(torch.index_select(flat_bins, 0, where, out=code)).add_(base)
-        hist[0, j].scatter_add_(0, cell, sources[0])
-        hist[1, j].scatter_add_(0, cell, sources[1])
-    del base
-
-    # Score only thresholds that change the partition (the bin is not empty) and
-    # leave min_samples_leaf rows on both sides: deep nodes hold fewer rows than
-    # bins, so this skips most candidates there.
-    hist = hist.view(2, max_features, n_nodes, n_bins)
-    ok = torch.view_as_real(hist[0])[..., :-1, 0] > 0
-    cum = hist.cumsum_(dim=3)
-    cum_count = torch.view_as_real(cum[0])[..., 0]
-    n_left = cum_count[..., :-1]
-    ok &= n_left >= min_samples_leaf
-    ok &= n_left <= cum_count[..., -1:] - min_samples_leaf
-    cand_slot, owner, cand_bin = ok.nonzero().unbind(1)  # candidates (slot, node, bin); host sync
-    del ok, n_left, cum_count
-    cum0, cum1 = cum[0].view(-1), cum[1].view(-1)
-    at = (cand_slot * n_nodes + owner).mul_(n_bins)  # cell of bin 0 of (slot, node)
-    total = [cum0.index_select(0, at + n_bins - 1), cum1.index_select(0, at + n_bins - 1)]
-    at += cand_bin
-    left = [cum0.index_select(0, at), cum1.index_select(0, at)]
-    score = _weighted_entropy(*_stats(*left), max_kappa=MAX_KAPPA)
-    score += _weighted_entropy(*_stats(total[0].sub_(left[0]), total[1].sub_(left[1])), max_kappa=MAX_KAPPA)
-    del left, total, cand_slot, cand_bin
-    # argmin per node, ties to the lowest (slot, bin) as a dense argmin would: for a
-    # fixed node, the cell grows with (slot, bin)
-    best.fill_(math.inf).scatter_reduce_(0, owner, score, "amin")
-    winner = score == best.index_select(0, owner)
-    none = max_features * cells  # past every cell
-    arg = torch.full((n_nodes,), none, dtype=torch.long, device=best.device)
-    arg.scatter_reduce_(0, owner, torch.where(winner, at, none), "amin")
-    arg.masked_fill_(arg == none, 0)  # nodes without a valid threshold
-    torch.div(arg, cells, rounding_mode="floor", out=slot)
-    torch.remainder(arg, n_bins, out=b)
-    left_stats.copy_(torch.stack(_stats(cum0.index_select(0, arg), cum1.index_select(0, arg)), dim=1))
-    at = arg - b + (n_bins - 1)
-    total_stats.copy_(torch.stack(_stats(cum0.index_select(0, at), cum1.index_select(0, at)), dim=1))
-    return hist_buffer
-
-
 def _route(
     flat_bins: Tensor,
     where: Tensor,
@@ -1013,13 +977,13 @@ def _route(
     active: Tensor,
     code: Tensor,
     pair_index: Tensor,
-) -> tuple[int, int, Tensor, Tensor, Tensor, Tensor]:
+) -> tuple[int, int, Tensor, Tensor, Tensor]:
     """Send every pair to its child (``bin > split_bin`` goes right); keep those of active children.
 
     ``where`` locates each pair's bin of its node's split feature in ``flat_bins``.
     Returns the numbers of split nodes and of active children, the kept pairs'
     ``offset`` and ``pnode`` (grouped by child, rows still ascending inside), and the
-    active children as ``2 node + side`` with their pair counts. One host sync.
+    active children as ``2 node + side``. One host sync.
     """
     device = offset.device
     n_pairs = offset.numel()
@@ -1043,7 +1007,7 @@ def _route(
     next_active = _compact(active, n_active)
     counts = kept.index_select(0, next_active)
     pnode = torch.repeat_interleave(torch.arange(n_active, dtype=pnode.dtype, device=device), counts, output_size=n_kept)
-    return n_split, n_active, offset, pnode, next_active, counts
+    return n_split, n_active, offset, pnode, next_active
 
 
 def _route_compiled(

@@ -654,13 +654,11 @@ def _forest_rounds(image: Tensor, mask: Tensor, rows: Tensor, sh: Tensor, db: Ge
     explain the image worse than the round before."""
     rounds = 0 if given else cfg.refine_rounds
     m = mask[0, 0]
-    normals = torch.zeros_like(image)
-    confidence = torch.zeros_like(mask, dtype=image.dtype)
     best: Optional[_ForestRounds] = None
     for round_ in range(rounds + 1):
         if round_ > 0:
-            with timer("lighting refinement"):
-                sh = refit_lighting(image, mask, normals, valid=cfg.valid_refit)[0].to(sh.dtype)
+            with timer("lighting refinement"):  # from the normals of the round before
+                sh = refit_lighting(image, mask, best.normals, valid=cfg.valid_refit)[0].to(sh.dtype)
         # Perspective: train in the object's own orthographic frame (the lighting seen from
         # its centroid), then rotate the predictions to the camera frame.
         local_sh = sh if centroid is None else rotate_sh(sh, centroid.T.to(sh.dtype))
@@ -669,7 +667,7 @@ def _forest_rounds(image: Tensor, mask: Tensor, rows: Tensor, sh: Tensor, db: Ge
             pred: VMF = forest.predict(rows)
         normals = torch.zeros_like(image)
         normals[0].permute(1, 2, 0)[m] = pred.mean.to(normals.dtype)
-        confidence = torch.zeros_like(confidence)
+        confidence = torch.zeros_like(mask, dtype=image.dtype)
         confidence[0, 0][m] = pred.kappa.to(confidence.dtype)
         if centroid is not None:
             normals = _to_camera(normals, centroid, focal, principal_point, cfg.normal_rotation)
