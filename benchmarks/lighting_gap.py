@@ -85,27 +85,24 @@ def main() -> None:
               + " ".join(f"{a['alpha']:g}: {a['error']:5.2f}" for a in row["alphas"])
               + f"  ({time.perf_counter() - start:.0f} s)", flush=True)
 
-    def median(values):
-        return statistics.median(values)
-
     summary = []
     for i, alpha in enumerate(args.alphas):
         cells = [r["alphas"][i] for r in rows]
         summary.append({
-            "alpha": alpha, "median": median(c["error"] for c in cells),
-            "mean": statistics.mean(c["error"] for c in cells), "lmse": median(c["lmse"] for c in cells),
-            "integrability": median(c["integrability"] for c in cells),
-            "photometric": median(c["photometric"] for c in cells),
+            "alpha": alpha, "median": statistics.median(c["error"] for c in cells),
+            "mean": statistics.mean(c["error"] for c in cells), "lmse": statistics.median(c["lmse"] for c in cells),
+            "integrability": statistics.median(c["integrability"] for c in cells),
+            "photometric": statistics.median(c["photometric"] for c in cells),
         })
     last = len(args.alphas) - 1
     lowest = {key: sum(r["alphas"][last][key] <= min(a[key] for a in r["alphas"]) for r in rows)
               for key in ("integrability", "photometric")}
     print(f"\n{len(rows)} images ({args.side} side); the forest alone, without jitter, for L(alpha)")
     print(f"{'lighting':<24}{'median':>8}{'mean':>8}{'lMSE':>10}{'integ.':>8}{'photo. %':>10}")
-    print(f"{'silhouette prior':<24}{median(r['prior'] for r in rows):>8.2f}"
+    print(f"{'silhouette prior':<24}{statistics.median(r['prior'] for r in rows):>8.2f}"
           f"{statistics.mean(r['prior'] for r in rows):>8.2f}")
-    print(f"{'default call':<24}{median(r['default'] for r in rows):>8.2f}"
-          f"{statistics.mean(r['default'] for r in rows):>8.2f}{median(r['default_lmse'] for r in rows):>10.5f}")
+    print(f"{'default call':<24}{statistics.median(r['default'] for r in rows):>8.2f}"
+          f"{statistics.mean(r['default'] for r in rows):>8.2f}{statistics.median(r['default_lmse'] for r in rows):>10.5f}")
     for s in summary:
         print(f"{'alpha = %g' % s['alpha']:<24}{s['median']:>8.2f}{s['mean']:>8.2f}{s['lmse']:>10.5f}"
               f"{s['integrability']:>8.2f}{100 * s['photometric']:>10.3f}")
