@@ -769,10 +769,7 @@ def _plan(cfg: DictConfig) -> _Plan:
         message = str(err)
         raise ValueError(message if message.startswith("config ") else f"pipeline.{message}") from None
     classical = OmegaConf.to_object(cfg.classical) if isinstance(cfg.classical, DictConfig) else cfg.classical
-    try:
-        check_refine_config(classical)
-    except ValueError as err:
-        raise ValueError(f"classical.{str(err).removeprefix('refine.')}") from None
+    check_refine_config(classical, prefix="classical.")
     return _Plan(_output_folder(cfg), methods, pipeline, classical, device, _fingerprint(cfg))
 
 

@@ -134,21 +134,22 @@ WHEN = ("never", "known", "always")
 MODELS = ("pixel", "surface")
 
 
-def check_refine_config(cfg: RefineConfig) -> None:
-    """Raise ``ValueError`` naming the option for an invalid :class:`RefineConfig`."""
+def check_refine_config(cfg: RefineConfig, prefix: str = "refine.") -> None:
+    """``ValueError`` naming the first bad option of ``cfg`` as ``prefix`` + its field name
+    (``"refine."``, its group in the pipeline; ``"classical."`` in :mod:`sfs_torch.evaluate`)."""
     if cfg.when not in WHEN:
-        raise ValueError(f"refine.when must be one of {WHEN}, got {cfg.when!r}")
+        raise ValueError(f"{prefix}when must be one of {WHEN}, got {cfg.when!r}")
     if cfg.model not in MODELS:
-        raise ValueError(f"refine.model must be one of {MODELS}, got {cfg.model!r}")
+        raise ValueError(f"{prefix}model must be one of {MODELS}, got {cfg.model!r}")
     if cfg.iterations < 0:
-        raise ValueError(f"refine.iterations must be >= 0, got {cfg.iterations}")
+        raise ValueError(f"{prefix}iterations must be >= 0, got {cfg.iterations}")
     if cfg.levels < 1:
-        raise ValueError(f"refine.levels must be >= 1, got {cfg.levels}")
+        raise ValueError(f"{prefix}levels must be >= 1, got {cfg.levels}")
     for name in ("delta", "normal_weight", "contour_weight", "smoothness", "lighting_weight", "dark_level"):
         if not getattr(cfg, name) >= 0:
-            raise ValueError(f"refine.{name} must be >= 0, got {getattr(cfg, name)}")
+            raise ValueError(f"{prefix}{name} must be >= 0, got {getattr(cfg, name)}")
     if not cfg.delta > 0:
-        raise ValueError(f"refine.delta must be > 0, got {cfg.delta}")
+        raise ValueError(f"{prefix}delta must be > 0, got {cfg.delta}")
 
 
 def rim_pixels(mask: Tensor) -> Tensor:

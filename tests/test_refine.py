@@ -1,4 +1,5 @@
 import math
+import re
 
 import pytest
 import torch
@@ -11,6 +12,7 @@ from sfs_torch.metrics import lmse, normal_metrics
 from sfs_torch.refine import (
     PhotometricRefiner,
     RefineConfig,
+    check_refine_config,
     refine_shape_and_lighting,
     refinement_loss,
     rim_pixels,
@@ -227,3 +229,10 @@ class TestPipeline:
         monkeypatch.setattr("sfs_torch.pipeline.load_database", lambda *a, **k: pytest.fail("database loaded"))
         with pytest.raises(ValueError, match="refine.when"):
             sfs_torch.estimate(image, mask, config={"refine": {"when": "maybe"}}, progress=False)
+
+    @pytest.mark.parametrize("prefix", ["refine.", "classical.", ""])
+    def test_option_check_names_the_option_after_its_prefix(self, prefix):
+        with pytest.raises(ValueError, match=rf"^{re.escape(prefix)}levels must be >= 1, got 0$"):
+            check_refine_config(RefineConfig(levels=0), prefix=prefix)
+        with pytest.raises(ValueError, match=r"^refine\.delta must be > 0"):
+            check_refine_config(RefineConfig(delta=0.0))
