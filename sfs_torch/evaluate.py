@@ -50,9 +50,8 @@ from torch import Tensor  # noqa: E402
 
 from ._app import exit_unless_writable, output_folder, parse_device  # noqa: E402
 from .datasets import DEGRADATIONS, EVALUATION_LIGHTINGS, Scene  # noqa: E402
-from .geometry_db import GeometryDatabase  # noqa: E402
+from .geometry_db import GeometryDatabase, load_database  # noqa: E402
 from .metrics import lmse, normal_metrics  # noqa: E402
-from .model import ShapeFromShading  # noqa: E402
 from .pipeline import FeatureConfig, PipelineConfig, TrainingConfig, moved_option_hint, resolve_config  # noqa: E402
 from .refine import RefineConfig, check_refine_config  # noqa: E402
 
@@ -339,7 +338,7 @@ def run_method(name: str, scene: Scene, *, pipeline: Optional[PipelineConfig] = 
         classical: the ``classical`` method's options (default: :class:`EvalConfig`'s).
         device: where the method runs.
         database: the example-geometry database of ``pipeline.database`` on ``device``, loaded
-            once for many calls (:meth:`~sfs_torch.model.ShapeFromShading.database`, as
+            once for many calls (``load_database(pipeline.database).to(device)``, as
             :func:`evaluate` does); ``None``: a method that uses the forest loads it
             (:func:`~sfs_torch.geometry_db.load_database`).
 
@@ -798,7 +797,7 @@ def _warm_up(plan: _Plan, progress: bool) -> Optional[GeometryDatabase]:
     ``plan.device``, for every case (``None`` when no method uses the forest)."""
     database = None
     if any(METHODS[m].uses_forest for m in plan.methods):
-        database = ShapeFromShading(plan.pipeline, progress=progress).database(plan.device)
+        database = load_database(plan.pipeline.database, progress=progress).to(plan.device)
     if any(m not in ("silhouette", "flat") for m in plan.methods):
         torch.optim.LBFGS([torch.zeros(1, requires_grad=True)])
     return database

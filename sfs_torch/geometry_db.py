@@ -21,9 +21,9 @@ import logging
 import os
 import time
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
-from typing import Iterator, List, Optional, Sequence, Tuple
+from typing import Iterator, List, Optional, Sequence, Tuple, Union
 
 import platformdirs
 import torch
@@ -116,6 +116,14 @@ class GeometryDatabase:
     shape_id: Tensor
     view_id: Tensor
     shape_names: Tuple[str, ...] = field(default=())
+
+    def to(self, device: Union[str, torch.device]) -> "GeometryDatabase":
+        """The database with its tensors on ``device``; ``self`` when they are there already."""
+        device = torch.device(device)
+        tensors = {f.name: getattr(self, f.name) for f in fields(self) if isinstance(getattr(self, f.name), Tensor)}
+        if all(t.device == device for t in tensors.values()):
+            return self
+        return replace(self, **{name: t.to(device) for name, t in tensors.items()})
 
 
 def cache_dir() -> Path:

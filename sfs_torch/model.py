@@ -10,7 +10,7 @@ implementation of the pipeline.
 """
 from __future__ import annotations
 
-from dataclasses import fields, replace
+from dataclasses import replace
 from typing import Any, Dict, Optional, Sequence, Union
 
 import torch
@@ -90,7 +90,7 @@ class ShapeFromShading(nn.Module):
         if cpu not in self._databases:
             self._databases[cpu] = geometry_db.load_database(self._database_config, progress=self.progress)
         if device not in self._databases:
-            self._databases[device] = _database_to(self._databases[cpu], device)
+            self._databases[device] = self._databases[cpu].to(device)
         return self._databases[device]
 
     def clear_database(self) -> None:
@@ -144,11 +144,3 @@ class ShapeFromShading(nn.Module):
             f"database={cfg.database.collection!r}, forest=(n_trees={cfg.forest.n_trees}, "
             f"max_depth={cfg.forest.max_depth}), integrate={cfg.integrate.method!r}, focal={cfg.camera.focal}"
         )
-
-
-def _database_to(db: GeometryDatabase, device: torch.device) -> GeometryDatabase:
-    """``db`` with its tensors on ``device`` (``db`` itself when they are there)."""
-    tensors = {f.name: getattr(db, f.name) for f in fields(db) if isinstance(getattr(db, f.name), Tensor)}
-    if all(t.device == device for t in tensors.values()):
-        return db
-    return replace(db, **{name: t.to(device) for name, t in tensors.items()})

@@ -43,6 +43,7 @@ def _isolated_cache(tmp_path_factory, monkeypatch):
 @pytest.fixture()
 def database_loads(monkeypatch):
     """The configs of every ``load_database`` call during the test, whoever makes it."""
+    import sfs_torch.evaluate as evaluate
     import sfs_torch.geometry_db as geometry_db
     import sfs_torch.pipeline as pipeline
 
@@ -55,4 +56,5 @@ def database_loads(monkeypatch):
 
     monkeypatch.setattr(geometry_db, "load_database", counted)
     monkeypatch.setattr(pipeline, "load_database", counted)  # estimate()'s own import of it
+    monkeypatch.setattr(evaluate, "load_database", counted)  # and sfs-torch-eval's
     return loads

@@ -99,6 +99,16 @@ class TestBuildDatabase:
                 build_database(replace(TINY, **bad), progress=False)
 
 
+    def test_to_moves_every_tensor_and_keeps_the_names(self, tiny_db):
+        assert tiny_db.to("cpu") is tiny_db  # already there: no copy
+        moved = tiny_db.to(torch.device("meta"))  # a device every machine has
+        assert all(t.device.type == "meta" for t in _fields(moved))
+        assert [t.shape for t in _fields(moved)] == [t.shape for t in _fields(tiny_db)]
+        assert [t.dtype for t in _fields(moved)] == [t.dtype for t in _fields(tiny_db)]
+        assert moved.shape_names == tiny_db.shape_names
+        assert all(t.device.type == "cpu" for t in _fields(tiny_db))  # the original is untouched
+
+
 class TestSplit:
     def test_never_overlaps(self):
         for seed in range(3):
