@@ -55,6 +55,8 @@ def main() -> None:
     parser.add_argument("--alphas", type=float, nargs="+", default=[0.0, 0.25, 0.5, 0.75, 0.9, 1.0])
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "lighting_gap.json")
     args = parser.parse_args()
+    if not all(0 <= a <= 1 for a in args.alphas):
+        parser.error(f"--alphas must lie in [0, 1] (between the estimate and the truth), got {args.alphas}")
     shapes = scene_shapes(args.shapes, args.side)
     lightings = validation_lightings(args.lights) if args.side == "validation" else evaluation_lightings(args.lights)
     database = load_database(resolve_config({}).database, progress=False)
