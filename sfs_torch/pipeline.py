@@ -14,8 +14,8 @@
 5. perspective: the normals, predicted in the object's orthographic frame, rotated
    into the camera frame (:mod:`sfs_torch.camera`);
 6. photometric refinement (:mod:`sfs_torch.refine`, not in the paper): the normals
-   fitted to the image under the lighting, by default when the lighting is given
-   (``refine.when``);
+   fitted to the image, per pixel under a given lighting, and an estimated lighting
+   refined jointly with an integrable surface (``refine.when``, default ``"always"``);
 7. optional integrability refinement (:mod:`sfs_torch.integrability`).
 """
 from __future__ import annotations
@@ -181,10 +181,11 @@ class Estimate:
         confidence: :math:`(B, 1, H, W)` forest concentration (vMF kappa), 0 outside.
         lighting: :math:`(B, 3, 9)` SH lighting, camera frame: the given one, or the
             estimate after ``refine_rounds`` refits (the one the
-            final forest was trained for), photometrically refined when
-            ``refine.when="always"``.
+            final forest was trained for), refined jointly with the surface by the
+            photometric refinement (``refine.when="always"``, the default).
         depth: :math:`(B, 1, H, W)` from integrability (``integrate=``) or from the
-            photometric refinement's surface model (``refine.model=surface``), else ``None``.
+            photometric refinement's surface model (by default with an estimated
+            lighting; ``refine.model=surface`` with a given one), else ``None``.
         mask: :math:`(B, 1, H, W)` the object mask used.
         timings: seconds spent per stage, summed over the batch.
     """

@@ -4,12 +4,17 @@ The forest predicts every pixel on its own, for one lighting. This stage fits th
 normals to the image itself, with torch autograd (L-BFGS), starting from the forest's
 normals and the lighting they were predicted for. Two models of the normals:
 
-- ``model="pixel"`` (default): one free unit normal per pixel, the lighting held fixed.
+- ``model="pixel"``: one free unit normal per pixel, the lighting held fixed.
   Self-occluding objects (a leg in front of a body) keep their depth discontinuities;
 - ``model="surface"``: the normals of one integrable field ``s`` (height, orthographic,
   or log-depth, perspective; :func:`sfs_torch.integrability.field_normals`), started
   from the kappa-weighted L2 integration of the forest's normals, optionally with the
-  lighting refined jointly. It gives a depth map, but cannot represent discontinuities.
+  lighting refined jointly. It gives a depth map, but cannot represent discontinuities;
+- ``model="auto"`` (default): the surface model when the lighting is refined
+  (``optimise_lighting``), the pixel model when it is held fixed. Free per-pixel
+  normals could explain any image under a wrong lighting, so fitting the lighting
+  needs the integrable surface; with a lighting held fixed the pixel model fits closer
+  (both measured in docs/refine.md).
 
 Both minimise, per image,
 
@@ -36,7 +41,7 @@ Both minimise, per image,
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional, Sequence, Tuple
 
 import torch
@@ -65,8 +70,9 @@ class RefineConfig:
         when: when :func:`sfs_torch.estimate` runs this stage: ``"never"``, ``"known"``
             (only when the lighting is given) or ``"always"`` (an estimated lighting
             too). The default is the measured one (docs/refine.md).
-        model: ``"pixel"`` (a free normal per pixel, the lighting held fixed) or
-            ``"surface"`` (an integrable field, see the module docstring).
+        model: ``"pixel"`` (a free normal per pixel, the lighting held fixed),
+            ``"surface"`` (an integrable field, see the module docstring) or ``"auto"``
+            (surface when ``optimise_lighting``, else pixel).
         iterations: L-BFGS iterations (each one evaluation of the loss and its gradient
             at least; the strong-Wolfe line search may add a few).
         delta: Charbonnier smoothing of the photometric residual, relative to the mean
@@ -78,16 +84,16 @@ class RefineConfig:
         contour_weight: ``lambda_c``, pull of the rim normals towards the silhouette's.
         smoothness: ``lambda_s``, pull of neighbouring normals towards each other.
         lighting_weight: ``lambda_L``, pull of the lighting towards the natural-lighting prior.
-        optimise_lighting: ``model="surface"`` only: fit the lighting too (``False``: held
+        optimise_lighting: surface model only: fit the lighting too (``False``: held
             fixed; :func:`sfs_torch.estimate` holds a given lighting fixed by itself).
         levels: ``model="surface"`` only: levels of the coarse-to-fine parameterisation
             (the field is a sum of bilinearly upsampled grids at 1, 1/2, ...,
             1/2^(levels-1) of the resolution), which lets L-BFGS fix smooth errors quickly.
     """
 
-    when: str = "known"
-    model: str = "pixel"
-    iterations: int = 60
+    when: str = "always"
+    model: str = "auto"
+    iterations: int = 150
     delta: float = 0.02
     dark_level: float = 0.004
     normal_weight: float = 0.2
@@ -131,7 +137,7 @@ class Refinement:
 
 
 WHEN = ("never", "known", "always")
-MODELS = ("pixel", "surface")
+MODELS = ("auto", "pixel", "surface")
 
 
 def check_refine_config(cfg: RefineConfig, prefix: str = "refine.") -> None:
@@ -279,6 +285,8 @@ def refine_shape_and_lighting(
     """
     cfg = config or RefineConfig()
     check_refine_config(cfg)
+    if cfg.model == "auto":
+        cfg = replace(cfg, model="surface" if cfg.optimise_lighting else "pixel")
     check_shape(image, "image", "B 3 H W")
     check_shape(normals, "normals", "B 3 H W")
     check_shape(lighting, "lighting", "B 3 9")

@@ -70,7 +70,7 @@ class TestConfigs:
         assert {stage: choices[stage] for stage in stages} == {
             "database": "default", "silhouette": "default", "texton": "default", "reflectance_map": "default",
             "features": "all", "training": "default", "forest": "default", "integrate": "none", "camera": "ortho",
-            "refine": "known",
+            "refine": "always",
         }
 
     def test_every_option_is_expected(self):

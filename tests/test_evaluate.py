@@ -265,7 +265,7 @@ class TestMethods:
         assert list(scores.results) == ["flat"] and len(scores.rows) == 1 and scores.rows[0]["median_deg"] is None
 
     @pytest.mark.parametrize("method, features, when, integrate, known", [
-        ("known_lighting", (True, True, True), "known", None, True),
+        ("known_lighting", (True, True, True), "always", None, True),
         ("known_lighting_forest", (True, True, True), "never", None, True),
         ("known_lighting_rgb", (True, False, False), "never", None, True),
         ("known_lighting_rgb_silh", (True, True, False), "never", None, True),
@@ -273,8 +273,8 @@ class TestMethods:
         ("known_lighting_l2", (True, True, True), "never", "l2", True),
         ("known_lighting_l1", (True, True, True), "never", "l1", True),
         ("known_lighting_conv", (True, True, True), "never", "conv", True),
-        ("estimated_lighting", (True, True, True), "known", None, False),
-        ("estimated_lighting_conv", (True, True, True), "known", "conv", False),
+        ("estimated_lighting", (True, True, True), "always", None, False),
+        ("estimated_lighting_conv", (True, True, True), "always", "conv", False),
     ])
     def test_what_each_estimate_method_asks_for(self, monkeypatch, method, features, when, integrate, known):
         import sfs_torch.pipeline as pipeline

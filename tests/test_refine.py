@@ -122,6 +122,16 @@ class TestRefineShapeAndLighting:
         assert float(out.loss_after[0]) < float(out.loss_before[0])
         assert (out.depth is None) == (model == "pixel")
 
+    @pytest.mark.parametrize("optimise_lighting, model", [(True, "surface"), (False, "pixel")])
+    def test_auto_model_fits_a_surface_exactly_when_it_fits_the_lighting(self, scene, optimise_lighting, model):
+        _, mask, _, image, start, start_sh = scene
+        auto, chosen = (refine_shape_and_lighting(image, mask, start, start_sh, config=RefineConfig(
+            model=m, optimise_lighting=optimise_lighting, iterations=10)) for m in ("auto", model))
+        assert RefineConfig().model == "auto"
+        assert torch.allclose(auto.normals, chosen.normals) and torch.allclose(auto.lighting, chosen.lighting)
+        assert (auto.depth is None) == (model == "pixel")
+        assert torch.equal(auto.lighting, start_sh) != optimise_lighting
+
     def test_pixel_model_keeps_a_depth_discontinuity(self):
         # two spheres, the smaller in front of the larger: one mask, a jump in depth
         big, big_mask = sphere(48, 20.0)
@@ -205,7 +215,7 @@ class TestPipeline:
         "forest": {"n_trees": 8, "max_depth": 12},
     }
 
-    def test_known_lighting_is_refined_by_default(self):
+    def test_both_lightings_are_refined_by_default(self):
         normals, mask = sphere()
         sh = natural_lightings(0.7)["grace_cathedral"]
         image = (render_sh(normals[None], sh[None])[0] * mask).clamp(0, 1)
@@ -216,9 +226,14 @@ class TestPipeline:
         assert "photometric refinement" in default.timings
         assert _error(default.normals[None], normals[None], mask[None]) < _error(never.normals[None], normals[None], mask[None])
         assert torch.equal(default.lighting, sh)
-        # an estimated lighting is left to the forest by default
+        # an estimated lighting is refined jointly with an integrable surface
         unknown = sfs_torch.estimate(image, mask, config=self.TINY, progress=False)
-        assert "photometric refinement" not in unknown.timings
+        forest = sfs_torch.estimate(image, mask, config={**self.TINY, "refine": {"when": "known"}}, progress=False)
+        assert "photometric refinement" in unknown.timings and "photometric refinement" not in forest.timings
+        assert unknown.depth is not None and forest.depth is None
+        # the sphere's prior (Eq. 10 is exact for it) and its lighting survive the refinement
+        assert _error(unknown.normals[None], normals[None], mask[None]) < 1.0
+        assert float(lmse(unknown.lighting, sh)) < 1e-5
         surface = sfs_torch.estimate(image, mask, lighting=sh, config={**self.TINY, "refine": {"model": "surface"}},
                                      progress=False)
         assert surface.depth is not None and surface.depth.shape == (1, 64, 64)
