@@ -737,13 +737,16 @@ def field_normals(s: Tensor, m: Tensor, focal: Optional[float], principal_point:
     gu = _derivative(s, m, -1)
     gv = -_derivative(s, m, -2)  # rows grow downwards, v upwards
     if focal is None:
-        n = torch.stack([-gu, -gv, torch.ones_like(gu)], 1)
+        parts = (-gu, -gv, torch.ones_like(gu))
     else:
         h, w = s.shape[-2:]
         u, v = pixel_grid(h, w, principal_point, device=s.device, dtype=s.dtype)
-        n = torch.stack([focal * gu, focal * gv, 1.0 + u * gu + v * gv], 1)
-    n = n / n.norm(dim=1, keepdim=True).clamp_min(torch.finfo(n.dtype).tiny)
-    return torch.where(m[:, None], n, 0.0)
+        parts = (focal * gu, focal * gv, 1.0 + u * gu + v * gv)
+    # the length from the three (B, H, W) parts: a norm across the channel axis of the
+    # stacked field took twice as long, forward and backward, in the refinement's inner loop
+    length = torch.sqrt((parts[0] * parts[0] + parts[1] * parts[1] + parts[2] * parts[2])
+                        .clamp_min(torch.finfo(s.dtype).tiny))
+    return torch.where(m[:, None], torch.stack([p / length for p in parts], 1), 0.0)
 
 
 def depth_to_mesh(
