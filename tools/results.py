@@ -363,7 +363,8 @@ def results_markdown(preset: Preset, res: Results, *, command: str, prov: Mappin
         "",
         "`known_lighting` is our default with a known lighting: the forest, then photometric refinement (an "
         "addition to the paper; the forest alone is Table 1a's last row). `estimated_lighting` is the whole "
-        "method in unknown lighting; lMSE scores its lighting. The paper's synthetic row is its Table 2a (Barron "
+        "method in unknown lighting, whose lighting our default then refines jointly with an integrable surface "
+        "(also an addition); lMSE scores that lighting. The paper's synthetic row is its Table 2a (Barron "
         "& Malik's re-rendered MIT images, nMSE only), its real row Table 2b's natural-illumination columns "
         "(photographs). Our realistic images add cast shadows, a specular lobe, exposure and white-balance "
         "errors, shot noise and 8-bit sRGB files to the same scenes ([Evaluation scenes](datasets.md)): a "
