@@ -98,7 +98,6 @@ class TestBuildDatabase:
             with pytest.raises(ValueError, match=name):
                 build_database(replace(TINY, **bad), progress=False)
 
-
     def test_to_moves_every_tensor_and_keeps_the_names(self, tiny_db):
         assert tiny_db.to("cpu") is tiny_db  # already there: no copy
         moved = tiny_db.to(torch.device("meta"))  # a device every machine has
