@@ -553,7 +553,7 @@ def estimate(
     sh = sh.clone()
     normals = torch.zeros_like(image_b)
     confidence = torch.zeros_like(mask_b, dtype=image_b.dtype)
-    candidates = []
+    candidates, kept = [], []
     for b in range(image_b.shape[0]):
         image_1, mask_1, m = image_b[b : b + 1], mask_b[b : b + 1], mask_b[b, 0]
         rows = feats[b].permute(1, 2, 0)[m]
@@ -571,6 +571,7 @@ def estimate(
                 normals[b], sh[b] = prior[0][0], prior[1][0]
                 # the prior carries no per-pixel confidence: the forest's median everywhere
                 confidence[b, 0][m] = confidence[b, 0][m].median()
+        kept.append(prior is not None)
         if integrate == "conv":
             candidates.append(normals[b : b + 1].clone() if prior is not None else
                               _conv_candidates(found.forest, rows, m, cfg, centroid, focal, principal_point))
@@ -579,13 +580,9 @@ def estimate(
     depth = None
     if cfg.refine.when == "always" or (cfg.refine.when == "known" and given):
         with timer("photometric refinement"):
-            refined = refine_shape_and_lighting(
-                image_b, mask_b, normals, sh, confidence=confidence, focal=focal, principal_point=principal_point,
-                # a given lighting is trusted exactly, never refined
-                config=replace(cfg.refine, optimise_lighting=cfg.refine.optimise_lighting and not given),
-                silhouette=cfg.silhouette,
-            )
-        depth, normals, sh = refined.depth, refined.normals, refined.lighting
+            skip = torch.tensor(kept, device=image_b.device) & cfg.refine.skip_prior
+            depth, normals, sh = _refine(image_b, mask_b, normals, sh, confidence, skip, cfg, given, focal,
+                                         principal_point)
     if integrate != "none":
         with timer(f"integrate ({integrate})"):
             integrator = _integrator(cfg.integrate, integrate, focal, principal_point)
@@ -601,6 +598,30 @@ def estimate(
         normals=out(normals), confidence=out(confidence), lighting=out(sh), depth=out(depth), mask=out(mask_b),
         timings=dict(timer.seconds),
     )
+
+
+def _refine(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, confidence: Tensor, skip: Tensor,
+            cfg: PipelineConfig, given: bool, focal: Optional[float], principal_point: Optional[tuple]) -> tuple:
+    """``(depth or None, normals, lighting)`` after the photometric refinement of the
+    images not in ``skip`` (B,) bool; those in it keep their normals and lighting, and get
+    the refinement's starting surface as their depth (the L2 integration of the normals)."""
+    # a given lighting is trusted exactly, never refined
+    config = replace(cfg.refine, optimise_lighting=cfg.refine.optimise_lighting and not given)
+    normals, sh, depth = normals.clone(), sh.clone(), None
+    for items, refining in ((~skip).nonzero()[:, 0], True), (skip.nonzero()[:, 0], False):
+        if len(items) == 0:
+            continue
+        refined = refine_shape_and_lighting(
+            image[items], mask[items], normals[items], sh[items], confidence=confidence[items], focal=focal,
+            principal_point=principal_point, config=config if refining else replace(config, iterations=0),
+            silhouette=cfg.silhouette,
+        )
+        if refining:
+            normals[items], sh[items] = refined.normals, refined.lighting
+        if refined.depth is not None:
+            depth = torch.zeros_like(mask, dtype=image.dtype) if depth is None else depth
+            depth[items] = refined.depth
+    return depth, normals, sh
 
 
 def _checked_image_and_mask(image: Any, mask: Any, principal_point: Optional[tuple]) -> tuple:

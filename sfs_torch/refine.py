@@ -89,6 +89,10 @@ class RefineConfig:
         levels: ``model="surface"`` only: levels of the coarse-to-fine parameterisation
             (the field is a sum of bilinearly upsampled grids at 1, 1/2, ...,
             1/2^(levels-1) of the resolution), which lets L-BFGS fix smooth errors quickly.
+        skip_prior: in :func:`sfs_torch.estimate`, an image whose silhouette prior the
+            prior check kept (``keep_prior``) keeps Eq. 10's normals and their lighting
+            unrefined; its depth is their L2 integration (``model="surface"``).
+            ``False``: it is refined like any other.
     """
 
     when: str = "always"
@@ -102,6 +106,7 @@ class RefineConfig:
     lighting_weight: float = 0.01
     optimise_lighting: bool = True
     levels: int = 5
+    skip_prior: bool = True
 
 
 @dataclass(frozen=True)

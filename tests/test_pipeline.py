@@ -10,8 +10,10 @@ import sfs_torch
 from sfs_torch.lighting import natural_lightings, render_sh
 from sfs_torch.metrics import lmse, normal_metrics
 from sfs_torch import pipeline
+from sfs_torch.integrability import depth_to_normals
 from sfs_torch.pipeline import PipelineConfig, resolve_config, training_set
 from sfs_torch.reflectance_map import refit_lighting
+from sfs_torch.refine import rim_pixels
 from sfs_torch.silhouette import coarse_normals
 
 # A small database and forest keep these end-to-end tests to seconds; the accuracy of
@@ -257,6 +259,42 @@ class TestKeepPrior:
         assert torch.allclose(on.lighting, refit, atol=1e-5)
         kappa = on.confidence[mask]
         assert torch.allclose(kappa, kappa[0].expand_as(kappa))  # no per-pixel confidence for the prior
+
+    def test_a_kept_prior_is_not_refined(self, scene):
+        # the default refines an estimated lighting jointly with a surface; a kept prior is
+        # Eq. 10's exact answer for a sphere, which that refinement would only move away
+        normals, mask, sh, image = scene
+        kept = sfs_torch.estimate(image, mask, config=TINY, progress=False)
+        moved = sfs_torch.estimate(image, mask, config=dict(TINY, refine={"skip_prior": False}), progress=False)
+        coarse = coarse_normals(mask[None])[0]
+        assert torch.allclose(kept.normals, coarse, atol=1e-6)
+        assert torch.allclose(kept.lighting, refit_lighting(image[None], mask[None], coarse[None])[0], atol=1e-5)
+        assert not torch.allclose(moved.normals, coarse, atol=1e-3)
+        # its depth is still given: the L2 integration of those normals
+        interior = mask & ~rim_pixels(mask[None])[0]
+        of_depth = depth_to_normals(kept.depth[None], mask[None])[0]
+        assert float(normal_metrics(of_depth[None], coarse[None], interior[None]).median[0]) < 1.0
+
+    def test_a_batch_refines_only_the_items_without_a_kept_prior(self, scene, monkeypatch):
+        normals, mask, sh, image = scene
+        checked = []
+
+        def first_only(*args, **kwargs):
+            checked.append(None)
+            return better_prior(*args, **kwargs) if len(checked) == 1 else None
+
+        better_prior = pipeline._better_prior
+        monkeypatch.setattr(pipeline, "_better_prior", first_only)
+        both = sfs_torch.estimate(torch.stack([image, image]), torch.stack([mask, mask]), config=TINY, progress=False)
+        monkeypatch.undo()
+        forest = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False), progress=False)
+        assert torch.allclose(both.normals[0], coarse_normals(mask[None])[0], atol=1e-6)
+        assert float(normal_metrics(both.normals[1:], forest.normals[None], mask[None]).median[0]) < 0.5
+        assert float(lmse(both.lighting[1:], forest.lighting[None])[0]) < 1e-5
+        interior = (mask & ~rim_pixels(mask[None])[0])[None]
+        for depth, expected in zip(both.depth, (coarse_normals(mask[None])[0], both.normals[1])):
+            of_depth = depth_to_normals(depth[None], mask[None])
+            assert float(normal_metrics(of_depth, expected[None], interior).median[0]) < 1.0
 
     def test_a_given_lighting_is_kept_with_the_prior(self, scene):
         normals, mask, sh, image = scene
