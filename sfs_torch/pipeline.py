@@ -51,7 +51,13 @@ from .reflectance_map import (
     hemisphere_directions,
     refit_lighting,
 )
-from .refine import RefineConfig, check_refine_config, photometric_residual, refine_shape_and_lighting
+from .refine import (
+    RefineConfig,
+    check_refine_config,
+    free_lighting_residual,
+    photometric_residual,
+    refine_shape_and_lighting,
+)
 from .silhouette import SilhouetteConfig, check_silhouette_config, coarse_normals, silhouette_features
 from .texton import N_TEXTON_FILTERS, TextonConfig, _check_kernel_size, texton_features
 
@@ -580,7 +586,8 @@ def estimate(
     depth = None
     if cfg.refine.when == "always" or (cfg.refine.when == "known" and given):
         with timer("photometric refinement"):
-            skip = torch.tensor(kept, device=image_b.device) & cfg.refine.skip_prior
+            # measured for the joint refinement only; a given lighting's normals are still refined
+            skip = torch.tensor(kept, device=image_b.device) & (cfg.refine.skip_prior and not given)
             depth, normals, sh = _refine(image_b, mask_b, normals, sh, confidence, skip, cfg, given, focal,
                                          principal_point)
     if integrate != "none":
@@ -752,6 +759,9 @@ def _with_image_noise(cfg: PipelineConfig, image: Tensor, mask: Tensor) -> Pipel
     return replace(cfg, training=replace(cfg.training, noise_sigma=round(sigma, 5)))
 
 
+FREE_FIT_MAX_CLIPPED = 0.25
+
+
 def _better_prior(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, focal: Optional[float],
                   principal_point: Optional[tuple], *, refit: bool, valid: bool,
                   forest_score: Optional[float] = None,
@@ -761,8 +771,12 @@ def _better_prior(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, foca
     The prior is Eq. 10's coarse normal field with, for an estimated lighting, its own
     :func:`refit_lighting` (for a given lighting, that lighting); both pairs are scored by
     :func:`photometric_residual` (the forest pair's ``forest_score`` when the refit rounds
-    already computed it). A blob-like object (a sphere above all) is the prior's case: there
-    the forest's colour cue only adds error.
+    already computed it). For an estimated lighting the prior is also kept when it scores
+    better by :func:`free_lighting_residual` (on images with at most
+    ``FREE_FIT_MAX_CLIPPED`` of the object's pixels clipped at 0 or 1): under a strong sun no 9-term lighting shades
+    even the true normals like the image, and a forest's normals, trained for the refit,
+    bend to fit it. A blob-like object (a sphere above all) is the prior's case: there the
+    forest's colour cue only adds error.
     """
     coarse = coarse_normals(mask, focal=focal, principal_point=principal_point, config=silhouette).to(normals.dtype)
     prior_sh = refit_lighting(image, mask, coarse, valid=valid) if refit else sh
@@ -773,6 +787,15 @@ def _better_prior(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, foca
         log.info("keeping the silhouette prior: it explains the image better (residual %.4f vs %.4f)",
                  prior_score, forest_score)
         return coarse, prior_sh
+    clipped = float((mask & ((image <= RefineConfig.dark_level) | (image >= 1)).any(1, keepdim=True)).sum() / mask.sum())
+    # the free shading is fitted to the unclipped pixels and unbounded on the others: on a
+    # half-saturated image it kept the prior where the forest was better (TestSaturatedImage)
+    if refit and clipped <= FREE_FIT_MAX_CLIPPED:
+        forest_free, prior_free = (float(free_lighting_residual(n, image, mask)[0]) for n in (normals, coarse))
+        if prior_free < forest_free:
+            log.info("keeping the silhouette prior: it explains the image better under a free smooth shading "
+                     "(residual %.4f vs %.4f)", prior_free, forest_free)
+            return coarse, prior_sh
     return None
 
 

@@ -54,7 +54,7 @@ from .lighting import render_sh
 from .natural_lighting import LightingPrior, lighting_prior_energy, load_lighting_prior
 from .silhouette import SilhouetteConfig, coarse_normals
 
-__all__ = ["RefineConfig", "check_refine_config", "photometric_residual", "RefinementLoss", "Refinement", "refinement_loss", "refine_shape_and_lighting",
+__all__ = ["RefineConfig", "check_refine_config", "photometric_residual", "free_lighting_residual", "RefinementLoss", "Refinement", "refinement_loss", "refine_shape_and_lighting",
            "PhotometricRefiner", "rim_pixels"]
 
 log = logging.getLogger(__name__)
@@ -89,10 +89,10 @@ class RefineConfig:
         levels: ``model="surface"`` only: levels of the coarse-to-fine parameterisation
             (the field is a sum of bilinearly upsampled grids at 1, 1/2, ...,
             1/2^(levels-1) of the resolution), which lets L-BFGS fix smooth errors quickly.
-        skip_prior: in :func:`sfs_torch.estimate`, an image whose silhouette prior the
-            prior check kept (``keep_prior``) keeps Eq. 10's normals and their lighting
-            unrefined; its depth is their L2 integration (``model="surface"``).
-            ``False``: it is refined like any other.
+        skip_prior: in :func:`sfs_torch.estimate` with an estimated lighting, an image
+            whose silhouette prior the prior check kept (``keep_prior``) keeps Eq. 10's
+            normals and their lighting unrefined; its depth is their L2 integration.
+            ``False``: it is refined like any other (a given lighting's always is).
     """
 
     when: str = "always"
@@ -193,8 +193,47 @@ def photometric_residual(
     Returns:
         :math:`(B,)`, differentiable in ``normals`` and ``lighting``.
     """
+    return _robust_residual(render_sh(normals, lighting), image, mask, delta, dark_level)
+
+
+def free_lighting_residual(
+    normals: Tensor, image: Tensor, mask: Tensor, *, degree: int = 4, delta: float = RefineConfig.delta,
+    dark_level: float = RefineConfig.dark_level,
+) -> Tensor:
+    """How well normals explain an image under the best smooth shading of them, whatever the lighting.
+
+    The shading of each channel is a polynomial of degree ``<= degree`` in the normal's
+    components (on the sphere, degree 4 spans the SH bands 0-4, where the 9-term model
+    stops at 2: a sun's irradiance is not 9-term), fitted by least squares to the object
+    pixels not clipped at 0 (``dark_level``) or 1 (all of them where every one is), then
+    scored like :func:`photometric_residual`.
+
+    Args:
+        normals: :math:`(B, 3, H, W)`; image: :math:`(B, 3, H, W)`; mask: :math:`(B, 1, H, W)` bool.
+
+    Returns:
+        :math:`(B,)`.
+    """
+    n = normals.double()
+    powers = [(a, b, c) for a in range(degree + 1) for b in range(degree + 1 - a)
+              for c in range(degree + 1 - a - b)]
+    basis = torch.stack([n[:, 0] ** a * n[:, 1] ** b * n[:, 2] ** c for a, b, c in powers], -1)  # (B, H, W, K)
+    unclipped = mask & ((image > dark_level) & (image < 1)).all(1, keepdim=True)
+    fitted = torch.where(unclipped.flatten(1).any(1)[:, None, None, None], unclipped, mask)[:, 0].double()
+    weighted = basis * fitted[..., None]
+    gram = torch.einsum("bhwk,bhwl->bkl", weighted, basis)
+    # the monomials are dependent on the unit sphere (35 of them span 25 functions at degree 4)
+    ridge = 1e-6 * fitted.flatten(1).sum(1).clamp_min(1)[:, None, None] * torch.eye(len(powers), dtype=gram.dtype,
+                                                                                     device=gram.device)
+    coefficients = torch.linalg.solve(gram + ridge, torch.einsum("bhwk,bchw->bkc", weighted, image.double()))
+    shading = torch.einsum("bhwk,bkc->bchw", basis, coefficients).to(image.dtype)
+    return _robust_residual(shading, image, mask, delta, dark_level)
+
+
+def _robust_residual(shading: Tensor, image: Tensor, mask: Tensor, delta: float, dark_level: float) -> Tensor:
+    """Mean Charbonnier penalty of ``(shading - image) / mean(image)`` over the mask, one-sided at clipped pixels: (B,)."""
     scale = _masked_mean(image, mask).clamp_min(1e-6)[:, None, None, None]
-    residual = render_sh(normals, lighting) - image
+    residual = shading - image
     # clipped pixels only bound the shading: an attached shadow may render below 0 and a
     # highlight above 1
     residual = torch.where(image <= dark_level, residual.clamp_min(0),

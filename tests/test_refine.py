@@ -9,10 +9,13 @@ import sfs_torch
 from sfs_torch.integrability import field_normals
 from sfs_torch.lighting import natural_lightings, render_sh, rotate_sh
 from sfs_torch.metrics import lmse, normal_metrics
+from sfs_torch.reflectance_map import refit_lighting
 from sfs_torch.refine import (
     PhotometricRefiner,
     RefineConfig,
     check_refine_config,
+    free_lighting_residual,
+    photometric_residual,
     refine_shape_and_lighting,
     refinement_loss,
     rim_pixels,
@@ -53,6 +56,46 @@ class TestRimPixels:
         padded = torch.nn.functional.pad(mask[0].float(), (1, 1, 1, 1))
         neighbours = padded[:-2, 1:-1] + padded[2:, 1:-1] + padded[1:-1, :-2] + padded[1:-1, 2:]
         assert bool((neighbours[inner] == 4).all()) and bool((neighbours[rim] < 4).all())
+
+
+@pytest.fixture(scope="module")
+def sun():
+    """A sphere lit by one distant light: a clamped cosine, which no 9-term lighting renders."""
+    normals, mask = sphere(48, 19.0)
+    normals, mask = normals[None], mask[None]
+    direction = torch.nn.functional.normalize(torch.tensor([0.6, 0.3, 0.5]), dim=0)
+    shading = (normals * direction[None, :, None, None]).sum(1, keepdim=True).clamp_min(0)
+    colour = torch.tensor([0.9, 0.8, 0.7])[None, :, None, None]
+    return normals, mask, (0.02 + colour * shading) * mask
+
+
+class TestFreeLightingResidual:
+
+    def test_an_sh_image_is_explained_exactly(self, scene):
+        normals, mask, sh, image, _, _ = scene
+        assert float(free_lighting_residual(normals, image, mask)[0]) < 1e-4
+
+    def test_a_sun_is_explained_better_than_by_any_9_term_lighting(self, sun):
+        normals, mask, image = sun
+        free = float(free_lighting_residual(normals, image, mask)[0])
+        nine = float(photometric_residual(normals, refit_lighting(image, mask, normals, valid=False), image, mask)[0])
+        assert free < 0.5 * nine and nine > 0.01
+
+    def test_wrong_normals_explain_it_worse(self, sun):
+        normals, mask, image = sun
+        truth = float(free_lighting_residual(normals, image, mask)[0])
+        c = torch.linspace(-1, 1, 48)
+        yy, xx = torch.meshgrid(c, c, indexing="ij")
+        bent = torch.stack([0.3 * torch.sin(4 * yy), 0.3 * torch.cos(3 * xx), torch.zeros_like(xx)])[None]
+        wrong = torch.nn.functional.normalize(normals + bent, dim=1) * mask
+        assert float(free_lighting_residual(wrong, image, mask)[0]) > 1.5 * truth
+
+    def test_scale_free_and_batched(self, sun):
+        normals, mask, image = sun
+        both = free_lighting_residual(torch.cat([normals, normals]), torch.cat([image, 0.5 * image]),
+                                      torch.cat([mask, mask]))
+        assert torch.allclose(both[0], both[1], rtol=1e-4)
+        assert torch.allclose(both[:1], free_lighting_residual(normals, image, mask), rtol=1e-5)
 
 
 class TestRefinementLoss:
