@@ -773,10 +773,10 @@ def _better_prior(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, foca
     :func:`photometric_residual` (the forest pair's ``forest_score`` when the refit rounds
     already computed it). For an estimated lighting the prior is also kept when it scores
     better by :func:`free_lighting_residual` (on images with at most
-    ``FREE_FIT_MAX_CLIPPED`` of the object's pixels clipped at 0 or 1): under a strong sun no 9-term lighting shades
-    even the true normals like the image, and a forest's normals, trained for the refit,
-    bend to fit it. A blob-like object (a sphere above all) is the prior's case: there the
-    forest's colour cue only adds error.
+    ``FREE_FIT_MAX_CLIPPED`` of the object's pixels clipped at 0 or 1): under a strong sun
+    no 9-term lighting shades even the true normals like the image, and a forest's
+    normals, trained for the refit, bend to fit it. A blob-like object (a sphere above
+    all) is the prior's case: there the forest's colour cue only adds error.
     """
     coarse = coarse_normals(mask, focal=focal, principal_point=principal_point, config=silhouette).to(normals.dtype)
     prior_sh = refit_lighting(image, mask, coarse, valid=valid) if refit else sh
@@ -787,7 +787,8 @@ def _better_prior(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, foca
         log.info("keeping the silhouette prior: it explains the image better (residual %.4f vs %.4f)",
                  prior_score, forest_score)
         return coarse, prior_sh
-    clipped = float((mask & ((image <= RefineConfig.dark_level) | (image >= 1)).any(1, keepdim=True)).sum() / mask.sum())
+    clipped = float((mask & ((image <= RefineConfig.dark_level) | (image >= 1)).any(1, keepdim=True)).sum()
+                    / mask.sum())
     # the free shading is fitted to the unclipped pixels and unbounded on the others: on a
     # half-saturated image it kept the prior where the forest was better (TestSaturatedImage)
     if refit and clipped <= FREE_FIT_MAX_CLIPPED:
