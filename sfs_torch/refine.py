@@ -214,19 +214,23 @@ def free_lighting_residual(
     Returns:
         :math:`(B,)`.
     """
-    n = normals.double()
     powers = [(a, b, c) for a in range(degree + 1) for b in range(degree + 1 - a)
               for c in range(degree + 1 - a - b)]
-    basis = torch.stack([n[:, 0] ** a * n[:, 1] ** b * n[:, 2] ** c for a, b, c in powers], -1)  # (B, H, W, K)
     unclipped = mask & ((image > dark_level) & (image < 1)).all(1, keepdim=True)
-    fitted = torch.where(unclipped.flatten(1).any(1)[:, None, None, None], unclipped, mask)[:, 0].double()
-    weighted = basis * fitted[..., None]
-    gram = torch.einsum("bhwk,bhwl->bkl", weighted, basis)
-    # the monomials are dependent on the unit sphere (35 of them span 25 functions at degree 4)
-    ridge = 1e-6 * fitted.flatten(1).sum(1).clamp_min(1)[:, None, None] * torch.eye(len(powers), dtype=gram.dtype,
-                                                                                     device=gram.device)
-    coefficients = torch.linalg.solve(gram + ridge, torch.einsum("bhwk,bchw->bkc", weighted, image.double()))
-    shading = torch.einsum("bhwk,bkc->bchw", basis, coefficients).to(image.dtype)
+    shading = torch.zeros_like(image)
+    # one image at a time on its object's pixels: the background is most of a typical image
+    for b in range(image.shape[0]):
+        m = mask[b, 0]
+        n = normals[b][:, m].double()
+        power = [torch.stack([n[i] ** k for k in range(degree + 1)]) for i in range(3)]
+        basis = torch.stack([power[0][a] * power[1][b_] * power[2][c] for a, b_, c in powers], 1)  # (N, K)
+        fit = unclipped[b, 0][m]
+        fit = fit if bool(fit.any()) else torch.ones_like(fit)
+        a_fit = basis[fit]
+        # the monomials are dependent on the unit sphere (35 of them span 25 functions at degree 4)
+        ridge = 1e-6 * len(a_fit) * torch.eye(len(powers), dtype=basis.dtype, device=basis.device)
+        coefficients = torch.linalg.solve(a_fit.T @ a_fit + ridge, a_fit.T @ image[b][:, m].double().T[fit])
+        shading[b][:, m] = (basis @ coefficients).T.to(image.dtype)
     return _robust_residual(shading, image, mask, delta, dark_level)
 
 
