@@ -1,4 +1,5 @@
 import hashlib
+import math
 import os
 import time
 
@@ -295,6 +296,21 @@ class TestKeepPrior:
         for depth, expected in zip(both.depth, (coarse_normals(mask[None])[0], both.normals[1])):
             of_depth = depth_to_normals(depth[None], mask[None])
             assert float(normal_metrics(of_depth, expected[None], interior).median[0]) < 1.0
+
+    def test_a_sun_lit_sphere_keeps_its_prior_by_the_free_shading_score(self, monkeypatch):
+        # one distant light shades a clamped cosine, which no 9-term lighting renders: the
+        # forest's normals, trained for the refit, fit the image better under it than Eq. 10's
+        # exact ones, and only the free-shading score (refine.free_lighting_residual) keeps them
+        normals, mask = sphere()
+        direction = torch.nn.functional.normalize(torch.tensor([0.6, 0.3, 0.5]), dim=0)
+        shading = (normals * direction[:, None, None]).sum(0, keepdim=True).clamp_min(0)
+        image = ((0.03 + torch.tensor([0.9, 0.8, 0.7])[:, None, None] * shading) * mask).clamp(0, 1)
+        coarse = coarse_normals(mask[None])[0]
+        est = sfs_torch.estimate(image, mask, config=TINY, progress=False)
+        assert torch.allclose(est.normals, coarse, atol=1e-6)
+        monkeypatch.setattr(pipeline, "free_lighting_residual", lambda n, *a, **k: torch.full(n.shape[:1], math.inf))
+        nine_term = sfs_torch.estimate(image, mask, config=TINY, progress=False)
+        assert float(normal_metrics(nine_term.normals[None], normals[None], mask[None]).median[0]) > 2.0
 
     def test_a_given_lighting_is_kept_with_the_prior(self, scene):
         normals, mask, sh, image = scene
