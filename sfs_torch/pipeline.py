@@ -151,7 +151,10 @@ class PipelineConfig:
             estimate (which can shade parts of the hemisphere negative).
         keep_prior: return the silhouette prior (Eq. 10's coarse normals with their own
             refitted lighting, or with the given lighting) instead of the forest's normals
-            when it explains the image better (:func:`sfs_torch.refine.photometric_residual`).
+            when it explains the image better (:func:`sfs_torch.refine.photometric_residual`);
+            with an estimated lighting, asked again after the joint refinement, against the
+            refined surface, each under its own best smooth shading
+            (:func:`sfs_torch.refine.free_lighting_residual`).
         normal_rotation: how normals predicted in an orthographic frame are turned into
             a perspective camera's frame: ``"centroid"``, the one rotation of the object's
             centroid (the frame its training lighting is expressed in), or ``"pixel"``, each
@@ -590,6 +593,14 @@ def estimate(
             skip = torch.tensor(kept, device=image_b.device) & (cfg.refine.skip_prior and not given)
             depth, normals, sh = _refine(image_b, mask_b, normals, sh, confidence, skip, cfg, given, focal,
                                          principal_point)
+        if cfg.keep_prior and not given and depth is not None:
+            with timer("prior check after refinement"):
+                back = ~skip & _prior_explains_better(image_b, mask_b, normals, focal, principal_point, cfg.silhouette)
+                if bool(back.any()):
+                    depth, normals, sh = _back_to_prior(image_b, mask_b, depth, normals, sh, confidence, back, cfg,
+                                                        focal, principal_point)
+                    if integrate == "conv":
+                        candidates = [normals[b : b + 1].clone() if back[b] else c for b, c in enumerate(candidates)]
     if integrate != "none":
         with timer(f"integrate ({integrate})"):
             integrator = _integrator(cfg.integrate, integrate, focal, principal_point)
@@ -628,6 +639,52 @@ def _refine(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, confidence
         if refined.depth is not None:
             depth = torch.zeros_like(mask, dtype=image.dtype) if depth is None else depth
             depth[items] = refined.depth
+    return depth, normals, sh
+
+
+FREE_FIT_MAX_CLIPPED = 0.25
+
+
+def _prior_explains_better(image: Tensor, mask: Tensor, normals: Tensor, focal: Optional[float],
+                           principal_point: Optional[tuple], silhouette: SilhouetteConfig) -> Tensor:
+    """``(B,)`` bool: Eq. 10's coarse normals explain the image better than ``normals``, each
+    under its own best smooth shading (:func:`~sfs_torch.refine.free_lighting_residual`).
+
+    Asked after the joint refinement, so both fields are smooth and integrable. Under a
+    strong sun no 9-term lighting shades even the true normals like the image, so the prior
+    check before the refinement (9-term lightings) can prefer a forest's normals, trained
+    for the refit, that bend to fit it. Only for images with at most
+    ``FREE_FIT_MAX_CLIPPED`` of the object's pixels clipped at 0 or 1: the shading is
+    fitted to the others and unbounded on them.
+    """
+    coarse = coarse_normals(mask, focal=focal, principal_point=principal_point, config=silhouette).to(normals.dtype)
+    clipped = (mask & ((image <= RefineConfig.dark_level) | (image >= 1)).any(1, keepdim=True)).flatten(1).sum(1)
+    few_clipped = clipped <= FREE_FIT_MAX_CLIPPED * mask.flatten(1).sum(1)
+    better = free_lighting_residual(coarse, image, mask) < free_lighting_residual(normals, image, mask)
+    for b in torch.nonzero(few_clipped & better).flatten().tolist():
+        log.info("image %d: the silhouette prior explains it better than the refined surface under a free smooth "
+                 "shading; keeping the prior", b)
+    return few_clipped & better
+
+
+def _back_to_prior(image: Tensor, mask: Tensor, depth: Tensor, normals: Tensor, sh: Tensor, confidence: Tensor,
+                   back: Tensor, cfg: PipelineConfig, focal: Optional[float],
+                   principal_point: Optional[tuple]) -> tuple:
+    """``(depth, normals, lighting)`` with the images in ``back`` (B,) bool returned to the
+    silhouette prior, as the prior check returns it: Eq. 10's normals, their own refitted
+    lighting, the forest's median confidence everywhere (``confidence`` is updated in
+    place) and, as depth, their L2 integration."""
+    items = back.nonzero()[:, 0]
+    m = mask[items]
+    coarse = coarse_normals(m, focal=focal, principal_point=principal_point, config=cfg.silhouette).to(normals.dtype)
+    prior_sh = refit_lighting(image[items], m, coarse, valid=cfg.valid_refit)
+    for b in items.tolist():
+        confidence[b, 0][mask[b, 0]] = confidence[b, 0][mask[b, 0]].median()
+    everything = torch.ones_like(items, dtype=torch.bool)
+    prior_depth, _, _ = _refine(image[items], m, coarse, prior_sh, confidence[items], everything, cfg, False, focal,
+                                principal_point)
+    depth, normals, sh = depth.clone(), normals.clone(), sh.clone()
+    depth[items], normals[items], sh[items] = prior_depth, coarse * m, prior_sh
     return depth, normals, sh
 
 
@@ -759,9 +816,6 @@ def _with_image_noise(cfg: PipelineConfig, image: Tensor, mask: Tensor) -> Pipel
     return replace(cfg, training=replace(cfg.training, noise_sigma=round(sigma, 5)))
 
 
-FREE_FIT_MAX_CLIPPED = 0.25
-
-
 def _better_prior(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, focal: Optional[float],
                   principal_point: Optional[tuple], *, refit: bool, valid: bool,
                   forest_score: Optional[float] = None,
@@ -771,12 +825,8 @@ def _better_prior(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, foca
     The prior is Eq. 10's coarse normal field with, for an estimated lighting, its own
     :func:`refit_lighting` (for a given lighting, that lighting); both pairs are scored by
     :func:`photometric_residual` (the forest pair's ``forest_score`` when the refit rounds
-    already computed it). For an estimated lighting the prior is also kept when it scores
-    better by :func:`free_lighting_residual` (on images with at most
-    ``FREE_FIT_MAX_CLIPPED`` of the object's pixels clipped at 0 or 1): under a strong sun
-    no 9-term lighting shades even the true normals like the image, and a forest's
-    normals, trained for the refit, bend to fit it. A blob-like object (a sphere above
-    all) is the prior's case: there the forest's colour cue only adds error.
+    already computed it). A blob-like object (a sphere above all) is the prior's case: there
+    the forest's colour cue only adds error.
     """
     coarse = coarse_normals(mask, focal=focal, principal_point=principal_point, config=silhouette).to(normals.dtype)
     prior_sh = refit_lighting(image, mask, coarse, valid=valid) if refit else sh
@@ -787,16 +837,6 @@ def _better_prior(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, foca
         log.info("keeping the silhouette prior: it explains the image better (residual %.4f vs %.4f)",
                  prior_score, forest_score)
         return coarse, prior_sh
-    clipped = float((mask & ((image <= RefineConfig.dark_level) | (image >= 1)).any(1, keepdim=True)).sum()
-                    / mask.sum())
-    # the free shading is fitted to the unclipped pixels and unbounded on the others: on a
-    # half-saturated image it kept the prior where the forest was better (TestSaturatedImage)
-    if refit and clipped <= FREE_FIT_MAX_CLIPPED:
-        forest_free, prior_free = (float(free_lighting_residual(n, image, mask)[0]) for n in (normals, coarse))
-        if prior_free < forest_free:
-            log.info("keeping the silhouette prior: it explains the image better under a free smooth shading "
-                     "(residual %.4f vs %.4f)", prior_free, forest_free)
-            return coarse, prior_sh
     return None
 
 

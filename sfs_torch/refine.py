@@ -235,7 +235,8 @@ def free_lighting_residual(
 
 
 def _robust_residual(shading: Tensor, image: Tensor, mask: Tensor, delta: float, dark_level: float) -> Tensor:
-    """Mean Charbonnier penalty of ``(shading - image) / mean(image)`` over the mask, one-sided at clipped pixels: (B,)."""
+    """Mean Charbonnier penalty of ``(shading - image) / mean(image)`` over the mask,
+    one-sided at clipped pixels: (B,)."""
     scale = _masked_mean(image, mask).clamp_min(1e-6)[:, None, None, None]
     residual = shading - image
     # clipped pixels only bound the shading: an attached shadow may render below 0 and a

@@ -1,5 +1,4 @@
 import hashlib
-import math
 import os
 import time
 
@@ -286,6 +285,8 @@ class TestKeepPrior:
 
         better_prior = pipeline._better_prior
         monkeypatch.setattr(pipeline, "_better_prior", first_only)
+        # and no return to the prior after the refinement, which would also take the second sphere back
+        monkeypatch.setattr(pipeline, "_prior_explains_better", lambda image, *a: torch.zeros(len(image), dtype=torch.bool))
         both = sfs_torch.estimate(torch.stack([image, image]), torch.stack([mask, mask]), config=TINY, progress=False)
         monkeypatch.undo()
         forest = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False), progress=False)
@@ -297,20 +298,35 @@ class TestKeepPrior:
             of_depth = depth_to_normals(depth[None], mask[None])
             assert float(normal_metrics(of_depth, expected[None], interior).median[0]) < 1.0
 
-    def test_a_sun_lit_sphere_keeps_its_prior_by_the_free_shading_score(self, monkeypatch):
-        # one distant light shades a clamped cosine, which no 9-term lighting renders: the
-        # forest's normals, trained for the refit, fit the image better under it than Eq. 10's
-        # exact ones, and only the free-shading score (refine.free_lighting_residual) keeps them
-        normals, mask = sphere()
-        direction = torch.nn.functional.normalize(torch.tensor([0.6, 0.3, 0.5]), dim=0)
-        shading = (normals * direction[:, None, None]).sum(0, keepdim=True).clamp_min(0)
-        image = ((0.03 + torch.tensor([0.9, 0.8, 0.7])[:, None, None] * shading) * mask).clamp(0, 1)
-        coarse = coarse_normals(mask[None])[0]
+    def test_a_refined_surface_worse_than_the_prior_is_replaced_by_it(self, scene, monkeypatch):
+        # the prior check before the refinement missed the prior (patched away here), and the
+        # refinement returned a bent surface: under their own best smooth shadings Eq. 10's
+        # normals explain the image better, and the call returns them
+        normals, mask, sh, image = scene
+        coarse = coarse_normals(mask[None])
+        monkeypatch.setattr(pipeline, "_better_prior", lambda *a, **k: None)
+        refine = pipeline._refine
+
+        def bent(image, mask, normals, sh, confidence, skip, *args):
+            depth, out, light = refine(image, mask, normals, sh, confidence, skip, *args)
+            if bool(skip.all()):  # the prior's integration
+                return depth, out, light
+            c = torch.linspace(-1, 1, mask.shape[-1])
+            wave = torch.stack([0.3 * torch.sin(4 * c)[:, None].expand(-1, len(c)), torch.zeros(len(c), len(c)),
+                                torch.zeros(len(c), len(c))])
+            return depth, torch.nn.functional.normalize(coarse + wave, dim=1) * mask, light
+
+        monkeypatch.setattr(pipeline, "_refine", bent)
         est = sfs_torch.estimate(image, mask, config=TINY, progress=False)
-        assert torch.allclose(est.normals, coarse, atol=1e-6)
-        monkeypatch.setattr(pipeline, "free_lighting_residual", lambda n, *a, **k: torch.full(n.shape[:1], math.inf))
-        nine_term = sfs_torch.estimate(image, mask, config=TINY, progress=False)
-        assert float(normal_metrics(nine_term.normals[None], normals[None], mask[None]).median[0]) > 2.0
+        assert torch.allclose(est.normals, coarse[0], atol=1e-6)
+        assert torch.allclose(est.lighting, refit_lighting(image[None], mask[None], coarse)[0], atol=1e-5)
+        kappa = est.confidence[mask]
+        assert torch.allclose(kappa, kappa[0].expand_as(kappa))
+        interior = (mask & ~rim_pixels(mask[None])[0])[None]
+        assert float(normal_metrics(depth_to_normals(est.depth[None], mask[None]), coarse, interior).median[0]) < 1.0
+        # without keep_prior the bent surface stays
+        off = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False), progress=False)
+        assert float(normal_metrics(off.normals[None], coarse, mask[None]).median[0]) > 5.0
 
     def test_a_given_lighting_is_kept_with_the_prior(self, scene):
         normals, mask, sh, image = scene
