@@ -70,7 +70,6 @@ def sun():
 
 
 class TestFreeLightingResidual:
-
     def test_an_sh_image_is_explained_exactly(self, scene):
         normals, mask, sh, image, _, _ = scene
         assert float(free_lighting_residual(normals, image, mask)[0]) < 1e-4
