@@ -53,6 +53,7 @@ from .reflectance_map import (
 )
 from .refine import (
     RefineConfig,
+    _unclipped_pixels,
     check_refine_config,
     free_lighting_residual,
     photometric_residual,
@@ -595,7 +596,7 @@ def estimate(
                                          principal_point)
         if cfg.keep_prior and not given and depth is not None:
             with timer("prior check after refinement"):
-                back = ~skip & _prior_explains_better(image_b, mask_b, normals, focal, principal_point, cfg.silhouette)
+                back = _prior_explains_better(image_b, mask_b, normals, ~skip, focal, principal_point, cfg.silhouette)
                 if bool(back.any()):
                     depth, normals, sh = _back_to_prior(image_b, mask_b, depth, normals, sh, confidence, back, cfg,
                                                         focal, principal_point)
@@ -645,10 +646,11 @@ def _refine(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, confidence
 FREE_FIT_MAX_CLIPPED = 0.25
 
 
-def _prior_explains_better(image: Tensor, mask: Tensor, normals: Tensor, focal: Optional[float],
+def _prior_explains_better(image: Tensor, mask: Tensor, normals: Tensor, among: Tensor, focal: Optional[float],
                            principal_point: Optional[tuple], silhouette: SilhouetteConfig) -> Tensor:
-    """``(B,)`` bool: Eq. 10's coarse normals explain the image better than ``normals``, each
-    under its own best smooth shading (:func:`~sfs_torch.refine.free_lighting_residual`).
+    """``(B,)`` bool: of the images in ``among`` (B,) bool, those that Eq. 10's coarse
+    normals explain better than ``normals``, each field under its own best smooth shading
+    (:func:`~sfs_torch.refine.free_lighting_residual`).
 
     Asked after the joint refinement, so both fields are smooth and integrable. Under a
     strong sun no 9-term lighting shades even the true normals like the image, so the prior
@@ -657,14 +659,17 @@ def _prior_explains_better(image: Tensor, mask: Tensor, normals: Tensor, focal: 
     ``FREE_FIT_MAX_CLIPPED`` of the object's pixels clipped at 0 or 1: the shading is
     fitted to the others and unbounded on them.
     """
-    coarse = coarse_normals(mask, focal=focal, principal_point=principal_point, config=silhouette).to(normals.dtype)
-    clipped = (mask & ((image <= RefineConfig.dark_level) | (image >= 1)).any(1, keepdim=True)).flatten(1).sum(1)
-    few_clipped = clipped <= FREE_FIT_MAX_CLIPPED * mask.flatten(1).sum(1)
-    better = free_lighting_residual(coarse, image, mask) < free_lighting_residual(normals, image, mask)
-    for b in torch.nonzero(few_clipped & better).flatten().tolist():
+    clipped = (mask & ~_unclipped_pixels(image, mask)).flatten(1).sum(1)
+    items = (among & (clipped <= FREE_FIT_MAX_CLIPPED * mask.flatten(1).sum(1))).nonzero()[:, 0]
+    better = torch.zeros_like(among)
+    if len(items) > 0:
+        image, mask, normals = image[items], mask[items], normals[items]
+        coarse = coarse_normals(mask, focal=focal, principal_point=principal_point, config=silhouette).to(normals.dtype)
+        better[items] = free_lighting_residual(coarse, image, mask) < free_lighting_residual(normals, image, mask)
+    for b in better.nonzero()[:, 0].tolist():
         log.info("image %d: the silhouette prior explains it better than the refined surface under a free smooth "
                  "shading; keeping the prior", b)
-    return few_clipped & better
+    return better
 
 
 def _back_to_prior(image: Tensor, mask: Tensor, depth: Tensor, normals: Tensor, sh: Tensor, confidence: Tensor,

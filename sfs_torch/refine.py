@@ -216,22 +216,29 @@ def free_lighting_residual(
     """
     powers = [(a, b, c) for a in range(degree + 1) for b in range(degree + 1 - a)
               for c in range(degree + 1 - a - b)]
-    unclipped = mask & ((image > dark_level) & (image < 1)).all(1, keepdim=True)
+    unclipped = _unclipped_pixels(image, mask, dark_level)
     shading = torch.zeros_like(image)
     # one image at a time on its object's pixels: the background is most of a typical image
-    for b in range(image.shape[0]):
-        m = mask[b, 0]
-        n = normals[b][:, m].double()
+    for item in range(image.shape[0]):
+        m = mask[item, 0]
+        n = normals[item][:, m].double()
         power = [torch.stack([n[i] ** k for k in range(degree + 1)]) for i in range(3)]
-        basis = torch.stack([power[0][a] * power[1][b_] * power[2][c] for a, b_, c in powers], 1)  # (N, K)
-        fit = unclipped[b, 0][m]
+        basis = torch.stack([power[0][a] * power[1][b] * power[2][c] for a, b, c in powers], 1)  # (N, K)
+        fit = unclipped[item, 0][m]
         fit = fit if bool(fit.any()) else torch.ones_like(fit)
         a_fit = basis[fit]
         # the monomials are dependent on the unit sphere (35 of them span 25 functions at degree 4)
         ridge = 1e-6 * len(a_fit) * torch.eye(len(powers), dtype=basis.dtype, device=basis.device)
-        coefficients = torch.linalg.solve(a_fit.T @ a_fit + ridge, a_fit.T @ image[b][:, m].double().T[fit])
-        shading[b][:, m] = (basis @ coefficients).T.to(image.dtype)
+        coefficients = torch.linalg.solve(a_fit.T @ a_fit + ridge, a_fit.T @ image[item][:, m].double().T[fit])
+        shading[item][:, m] = (basis @ coefficients).T.to(image.dtype)
     return _robust_residual(shading, image, mask, delta, dark_level)
+
+
+def _unclipped_pixels(image: Tensor, mask: Tensor, dark_level: float = RefineConfig.dark_level) -> Tensor:
+    """Object pixels clipped in no channel, neither at 0 (at or below ``dark_level``) nor
+    at 1: :math:`(B, 3, H, W), (B, 1, H, W) -> (B, 1, H, W)` bool (the pixels whose shading
+    :func:`free_lighting_residual` fits)."""
+    return mask & ((image > dark_level) & (image < 1)).all(1, keepdim=True)
 
 
 def _robust_residual(shading: Tensor, image: Tensor, mask: Tensor, delta: float, dark_level: float) -> Tensor:
