@@ -208,7 +208,9 @@ def fit_sh_vectors(
     solution = torch.linalg.solve(gram, rhs)  # (B, 9, 3)
     if nonnegative is not None:
         solution = _nonnegative_solution(gram, rhs, solution, sh_basis_vectors(nonnegative.to(gram)))
-    return solution.transpose(1, 2).to(out_dtype)
+    # contiguous: the constrained solution's transpose is a strided view, which callers that
+    # flatten it (torch.optim's L-BFGS, on the refinement's lighting) cannot view
+    return solution.transpose(1, 2).to(out_dtype).contiguous()
 
 
 def _nonnegative_solution(gram: Tensor, rhs: Tensor, solution: Tensor, basis: Tensor, iterations: int = 500) -> Tensor:

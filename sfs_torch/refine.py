@@ -419,7 +419,9 @@ def _optimise(lighting, image, mask, normals, weights, rim_normals, focal, princ
         start = surface.depth[:, 0] if focal is None else torch.log(torch.where(m, surface.depth[:, 0], 1.0))
         variable = _Pyramid(torch.where(m, start, 0.0), cfg.levels, m, focal, principal_point)
         optimise_lighting = cfg.optimise_lighting
-    light = lighting.detach().clone().requires_grad_(optimise_lighting)
+    # contiguous copies: L-BFGS flattens each parameter's gradient with a view, which a
+    # strided input (a transposed lighting, permuted normals) would make fail
+    light = lighting.detach().clone(memory_format=torch.contiguous_format).requires_grad_(optimise_lighting)
     params = variable.parameters + ([light] if optimise_lighting else [])
 
     def loss_of(l: Tensor) -> Tensor:
@@ -459,7 +461,7 @@ class _PixelNormals:
 
     def __init__(self, start: Tensor, mask: Tensor):
         self.mask = mask
-        self.vector = start.detach().clone().requires_grad_(True)
+        self.vector = start.detach().clone(memory_format=torch.contiguous_format).requires_grad_(True)
         self.parameters = [self.vector]
 
     def normals(self) -> Tensor:
@@ -476,7 +478,7 @@ class _Pyramid:
     def __init__(self, start: Tensor, n_levels: int, m: Tensor, focal, principal_point):
         h, w = start.shape[-2:]
         self.size, self.m, self.focal, self.principal_point = (h, w), m, focal, principal_point
-        self.parameters = [start.clone().requires_grad_(True)]
+        self.parameters = [start.clone(memory_format=torch.contiguous_format).requires_grad_(True)]
         for level in range(1, n_levels):
             shape = (max(1, h >> level), max(1, w >> level))
             self.parameters.append(torch.zeros(start.shape[0], *shape, dtype=start.dtype, device=start.device,

@@ -141,6 +141,8 @@ class TestFitSH:
         assert float(shading.min()) > -1e-3 and float(image.min()) < -0.5
         # where the true shading is comfortably positive the constrained fit stays close to it
         assert float((shading - image)[image > 0.5].abs().median()) < 0.2
+        # the solver's transpose is copied: callers that view the result flat (L-BFGS) need it
+        assert fitted.is_contiguous()
 
     def test_nonnegative_leaves_valid_fits_alone(self):
         n = random_normals(1, 16, 16, torch.float64)

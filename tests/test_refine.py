@@ -221,6 +221,22 @@ class TestRefineShapeAndLighting:
         assert torch.allclose(two.normals[:1], one.normals, atol=1e-6)
         assert torch.allclose(two.lighting[:1], one.lighting, atol=1e-6)
 
+    @pytest.mark.parametrize("model", ["pixel", "surface"])
+    def test_strided_inputs_are_refined_like_contiguous_ones(self, scene, model):
+        # a lighting stored transposed (as a constrained SH fit used to return it) and
+        # channels-last normals: L-BFGS views each gradient flat, which failed on them and
+        # left the start unrefined
+        _, mask, sh, image, start, start_sh = scene
+        lighting = start_sh.transpose(1, 2).contiguous().transpose(1, 2)
+        normals = start.contiguous(memory_format=torch.channels_last)
+        assert not lighting.is_contiguous() and not normals.is_contiguous()
+        cfg = RefineConfig(model=model, iterations=10)
+        strided = refine_shape_and_lighting(image, mask, normals, lighting, config=cfg)
+        plain = refine_shape_and_lighting(image, mask, start, start_sh, config=cfg)
+        assert float(strided.loss_after[0]) < 0.9 * float(strided.loss_before[0])
+        torch.testing.assert_close(strided.normals, plain.normals)
+        torch.testing.assert_close(strided.lighting, plain.lighting)
+
     def test_module_equals_function(self, scene):
         _, mask, sh, image, start, start_sh = scene
         cfg = RefineConfig(iterations=5)
