@@ -10,6 +10,10 @@ reporting an ablation of choices already made, never for making one.
     python benchmarks/tune.py --variants '{}' '{"training": {"brightness_jitter": 0.1}}'
     python benchmarks/tune.py --degradation all --shapes 4 --lights 3 --variants '{}' ...
     python benchmarks/tune.py --side test --shapes 5 --lights 3 --variants '{"refine_rounds": 0}' '{}'
+    python benchmarks/tune.py --side test --shapes 6 --lights 5 --no-sphere --ablation
+
+``--ablation`` runs :data:`ABLATION`: the paper's method, then each addition on top of
+the one before, up to the default, and the default with the true lighting given.
 """
 from __future__ import annotations
 
@@ -33,6 +37,19 @@ from sfs_torch.datasets import (  # noqa: E402
 from sfs_torch.metrics import lmse, normal_metrics  # noqa: E402
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
 
+# (label, overrides): each row adds to the one above it; the last gives the true lighting
+ABLATION = [
+    ("the paper's method", {"refine_rounds": 0, "keep_prior": False, "valid_refit": False,
+                            "training": {"brightness_jitter": 0.0, "colour_jitter": 0.0, "noise_from_image": False},
+                            "refine": {"when": "never"}}),
+    ("+ constrained refit round, jitter", {"keep_prior": False, "training": {"noise_from_image": False},
+                                           "refine": {"when": "never"}}),
+    ("+ prior check, image-noise matching", {"refine": {"when": "never"}}),
+    ("+ joint refinement of surface and lighting", {"refine": {"lighting_weight": 0.0}}),
+    ("+ natural-lighting prior (the default)", {}),
+    ("the default, true lighting given", {"lighting": "known"}),
+]
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -46,9 +63,11 @@ def main() -> None:
     parser.add_argument("--no-sphere", action="store_true", help="leave out the sphere")
     parser.add_argument("--known", action="store_true", help="give the true lighting instead of estimating it")
     parser.add_argument("--variants", nargs="*", default=["{}"], help="pipeline config overrides, one JSON object each")
+    parser.add_argument("--ablation", action="store_true", help="run ABLATION instead of --variants")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "tune.json")
     args = parser.parse_args()
-    variants = [json.loads(v) for v in args.variants]
+    variants = [overrides for _, overrides in ABLATION] if args.ablation else [json.loads(v) for v in args.variants]
+    labels = [label for label, _ in ABLATION] if args.ablation else [json.dumps(v) for v in variants]
     shapes = scene_shapes(args.shapes, args.side, sphere=not args.no_sphere)
     lightings = validation_lightings(args.lights) if args.side == "validation" else evaluation_lightings(args.lights)
     rows = []
@@ -70,19 +89,23 @@ def main() -> None:
         print(f"{scene.name:<48}" + "".join(f"{row[f'error_{i}']:7.2f}" for i in range(len(variants))), flush=True)
     print(f"\n{len(rows)} images ({args.side} side), {args.degradation}, "
           f"{'known' if args.known else 'estimated'} lighting")
-    print(f"{'variant':<8}{'median':>8}{'mean':>8}{'lMSE':>9}{'s/call':>8}  overrides")
+    print(f"{'variant':<8}{'median':>8}{'mean':>8}{'lMSE':>9}{'worse':>7}{'s/call':>8}  overrides")
     silhouette = statistics.median(r["silhouette"] for r in rows)
     print(f"{'prior':<8}{silhouette:>8.2f}{statistics.mean(r['silhouette'] for r in rows):>8.2f}"
-          f"{'':>17}  the silhouette prior (Eq. 10)")
+          f"{'':>24}  the silhouette prior (Eq. 10)")
     summary = []
     for i, overrides in enumerate(variants):
         errors = [r[f"error_{i}"] for r in rows]
         summary.append({"overrides": overrides, "median": statistics.median(errors), "mean": statistics.mean(errors),
                         "ratio_to_prior": statistics.median(errors) / silhouette,
                         "lmse": statistics.median(r[f"lmse_{i}"] for r in rows),
+                        "worse_than_prior": sum(r[f"error_{i}"] > r["silhouette"] for r in rows),
                         "seconds": statistics.median(r[f"seconds_{i}"] for r in rows)})
         s = summary[-1]
-        print(f"{i:<8}{s['median']:>8.2f}{s['mean']:>8.2f}{s['lmse']:>9.5f}{s['seconds']:>8.1f}  {json.dumps(overrides)}")
+        print(f"{i:<8}{s['median']:>8.2f}{s['mean']:>8.2f}{s['lmse']:>9.5f}{s['worse_than_prior']:>7d}"
+              f"{s['seconds']:>8.1f}  {labels[i]}")
+    print("median, mean: of the per-image median angular errors (deg); lMSE: median; "
+          "worse: images on which the variant's error exceeds the silhouette prior's")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "silhouette": silhouette,
                                     "summary": summary,
