@@ -45,8 +45,9 @@ ABLATION = [
     ("+ constrained refit round, jitter", {"keep_prior": False, "training": {"noise_from_image": False},
                                            "refine": {"when": "never"}}),
     ("+ prior check, image-noise matching", {"refine": {"when": "never"}}),
-    ("+ joint refinement of surface and lighting", {"refine": {"lighting_weight": 0.0}}),
-    ("+ natural-lighting prior (the default)", {}),
+    ("+ joint refinement of surface and lighting", {"refine": {"lighting_weight": 0.0}, "final_round": False}),
+    ("+ natural-lighting prior", {"final_round": False}),
+    ("+ final unjittered round (the default)", {}),
     ("the default, true lighting given", {"lighting": "known"}),
 ]
 
@@ -57,6 +58,8 @@ def main() -> None:
                         help="validation: tune on it; test: report an ablation on it")
     parser.add_argument("--shapes", type=int, default=3)
     parser.add_argument("--lights", type=int, default=3)
+    parser.add_argument("--first-light", type=int, default=0,
+                        help="skip this many lightings first (the same lightings --lights would give after them)")
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--focal", type=float, default=None)
     parser.add_argument("--degradation", default="exact", choices=list(DEGRADATIONS))
@@ -69,7 +72,8 @@ def main() -> None:
     variants = [overrides for _, overrides in ABLATION] if args.ablation else [json.loads(v) for v in args.variants]
     labels = [label for label, _ in ABLATION] if args.ablation else [json.dumps(v) for v in variants]
     shapes = scene_shapes(args.shapes, args.side, sphere=not args.no_sphere)
-    lightings = validation_lightings(args.lights) if args.side == "validation" else evaluation_lightings(args.lights)
+    n = args.first_light + args.lights
+    lightings = (validation_lightings(n) if args.side == "validation" else evaluation_lightings(n))[args.first_light:]
     rows = []
     for scene in synthetic_scenes(shapes, lightings, resolution=args.resolution,
                                   focal=args.focal, formation=DEGRADATIONS[args.degradation]):

@@ -15,7 +15,9 @@
    into the camera frame (:mod:`sfs_torch.camera`);
 6. photometric refinement (:mod:`sfs_torch.refine`, not in the paper): the normals
    fitted to the image, per pixel under a given lighting, and an estimated lighting
-   refined jointly with an integrable surface (``refine.when``, default ``"always"``);
+   refined jointly with an integrable surface (``refine.when``, default ``"always"``),
+   then once more from an unjittered forest trained for the refined lighting
+   (``final_round``);
 7. optional integrability refinement (:mod:`sfs_torch.integrability`).
 """
 from __future__ import annotations
@@ -156,6 +158,11 @@ class PipelineConfig:
             with an estimated lighting, asked again after the joint refinement, against the
             refined surface, each under its own best smooth shading
             (:func:`sfs_torch.refine.free_lighting_residual`).
+        final_round: with an estimated lighting, after the joint refinement: the
+            lighting refitted to the refined normals, a forest trained for it without the
+            brightness/colour jitter, and the joint refinement again from that forest's
+            normals, whose surface, lighting and confidence are returned (one more forest
+            and refinement; measured in docs/pipeline.md).
         normal_rotation: how normals predicted in an orthographic frame are turned into
             a perspective camera's frame: ``"centroid"``, the one rotation of the object's
             centroid (the frame its training lighting is expressed in), or ``"pixel"``, each
@@ -178,6 +185,7 @@ class PipelineConfig:
     refine_rounds: int = 1
     valid_refit: bool = True
     keep_prior: bool = True
+    final_round: bool = True
     normal_rotation: str = "centroid"
     conv_samples_per_tree: int = 1
 
@@ -563,12 +571,14 @@ def estimate(
     sh = sh.clone()
     normals = torch.zeros_like(image_b)
     confidence = torch.zeros_like(mask_b, dtype=image_b.dtype)
-    candidates, kept = [], []
+    candidates, kept, per_image = [], [], []
     for b in range(image_b.shape[0]):
         image_1, mask_1, m = image_b[b : b + 1], mask_b[b : b + 1], mask_b[b, 0]
         rows = feats[b].permute(1, 2, 0)[m]
         centroid = centroid_rotation(mask_1, focal, principal_point)[0] if focal is not None else None
-        found = _forest_rounds(image_1, mask_1, rows, sh[b], db, _with_image_noise(train_cfg, image_1, mask_1), timer,
+        image_cfg = _with_image_noise(train_cfg, image_1, mask_1)
+        per_image.append((rows, centroid, image_cfg))
+        found = _forest_rounds(image_1, mask_1, rows, sh[b], db, image_cfg, timer,
                                given=given, centroid=centroid, focal=focal, principal_point=principal_point)
         normals[b], confidence[b], sh[b] = found.normals[0], found.confidence[0], found.lighting
         prior = None
@@ -594,6 +604,13 @@ def estimate(
             skip = torch.tensor(kept, device=image_b.device) & (cfg.refine.skip_prior and not given)
             depth, normals, sh = _refine(image_b, mask_b, normals, sh, confidence, skip, cfg, given, focal,
                                          principal_point)
+        if cfg.final_round and not given and depth is not None:
+            with timer("final round"):
+                for b in (~skip).nonzero()[:, 0].tolist():
+                    rows, centroid, image_cfg = per_image[b]
+                    last = _final_round(image_b[b : b + 1], mask_b[b : b + 1], normals[b : b + 1], rows, db, image_cfg,
+                                        timer, centroid, focal, principal_point)
+                    depth[b], normals[b], sh[b], confidence[b] = (x[0] for x in last)
         if cfg.keep_prior and not given and depth is not None:
             with timer("prior check after refinement"):
                 back = _prior_explains_better(image_b, mask_b, normals, ~skip, focal, principal_point, cfg.silhouette)
@@ -641,6 +658,22 @@ def _refine(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, confidence
             depth = torch.zeros_like(mask, dtype=image.dtype) if depth is None else depth
             depth[items] = refined.depth
     return depth, normals, sh
+
+
+def _final_round(image: Tensor, mask: Tensor, normals: Tensor, rows: Tensor, db: GeometryDatabase,
+                 cfg: PipelineConfig, timer: _Timer, centroid: Optional[Tensor], focal: Optional[float],
+                 principal_point: Optional[tuple]) -> tuple:
+    """``(depth, normals, lighting, confidence)`` of one image (a batch of 1, each with its
+    batch axis) after ``cfg.final_round`` (see :class:`PipelineConfig`), from its refined ``normals``."""
+    with timer("lighting refinement"):
+        sh = refit_lighting(image, mask, normals, valid=cfg.valid_refit)[0].to(normals.dtype)
+    unjittered = replace(cfg, refine_rounds=0, training=replace(cfg.training, brightness_jitter=0.0, colour_jitter=0.0))
+    found = _forest_rounds(image, mask, rows, sh, db, unjittered, timer, given=False, centroid=centroid, focal=focal,
+                           principal_point=principal_point)
+    refined = refine_shape_and_lighting(image, mask, found.normals, found.lighting[None], confidence=found.confidence,
+                                        focal=focal, principal_point=principal_point, config=cfg.refine,
+                                        silhouette=cfg.silhouette)
+    return refined.depth, refined.normals, refined.lighting, found.confidence
 
 
 FREE_FIT_MAX_CLIPPED = 0.25

@@ -335,6 +335,39 @@ class TestKeepPrior:
         assert torch.equal(est.lighting, sh)
 
 
+class TestFinalRound:
+    def test_it_refines_an_unjittered_forest_trained_for_the_refined_lighting(self, scene, monkeypatch):
+        # keep_prior=false: the sphere's prior would be kept, and a kept prior is not refined
+        normals, mask, sh, image = scene
+        rounds, refinements = [], []
+        forest_rounds, refine = pipeline._forest_rounds, pipeline.refine_shape_and_lighting
+
+        def recording_rounds(image, mask, rows, sh, db, cfg, *args, **kwargs):
+            rounds.append((sh.clone(), cfg.training.brightness_jitter, cfg.training.colour_jitter, cfg.refine_rounds))
+            return forest_rounds(image, mask, rows, sh, db, cfg, *args, **kwargs)
+
+        def recording_refine(*args, **kwargs):
+            refinements.append(refine(*args, **kwargs))
+            return refinements[-1]
+
+        monkeypatch.setattr(pipeline, "_forest_rounds", recording_rounds)
+        monkeypatch.setattr(pipeline, "refine_shape_and_lighting", recording_refine)
+        est = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False), progress=False)
+        assert len(rounds) == 2 and len(refinements) == 2
+        (_, jitter, _, refits), (last_sh, *unjittered) = rounds
+        assert jitter > 0 and refits == 1  # the call's own forests
+        assert unjittered == [0.0, 0.0, 0]
+        torch.testing.assert_close(last_sh, refit_lighting(image[None], mask[None], refinements[0].normals)[0])
+        torch.testing.assert_close(est.normals, refinements[1].normals[0])
+        torch.testing.assert_close(est.lighting, refinements[1].lighting[0])
+        torch.testing.assert_close(est.depth, refinements[1].depth[0])
+        assert "final round" in est.timings
+        rounds.clear(), refinements.clear()
+        off = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False, final_round=False), progress=False)
+        assert len(rounds) == 1 and len(refinements) == 1
+        torch.testing.assert_close(off.normals, refinements[0].normals[0])
+
+
 class TestForestCache:
     def test_keeps_the_most_recently_used(self, scene, tmp_path, monkeypatch):
         monkeypatch.setenv("SFS_TORCH_CACHE", str(tmp_path))
