@@ -670,10 +670,10 @@ def _final_round(image: Tensor, mask: Tensor, normals: Tensor, rows: Tensor, db:
     unjittered = replace(cfg, refine_rounds=0, training=replace(cfg.training, brightness_jitter=0.0, colour_jitter=0.0))
     found = _forest_rounds(image, mask, rows, sh, db, unjittered, timer, given=False, centroid=centroid, focal=focal,
                            principal_point=principal_point)
-    refined = refine_shape_and_lighting(image, mask, found.normals, found.lighting[None], confidence=found.confidence,
-                                        focal=focal, principal_point=principal_point, config=cfg.refine,
-                                        silhouette=cfg.silhouette)
-    return refined.depth, refined.normals, refined.lighting, found.confidence
+    depth, normals, sh = _refine(image, mask, found.normals, found.lighting[None], found.confidence,
+                                 torch.zeros(1, dtype=torch.bool, device=image.device), cfg, False, focal,
+                                 principal_point)
+    return depth, normals, sh, found.confidence
 
 
 FREE_FIT_MAX_CLIPPED = 0.25
