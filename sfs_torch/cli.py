@@ -33,6 +33,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from . import io  # noqa: E402
 from ._app import exit_unless_writable, output_folder, parse_device  # noqa: E402
+from .denoise import DenoiseConfig  # noqa: E402
 from .figures import confidence_display_max, summary_figure  # noqa: E402
 from .forest import ForestConfig  # noqa: E402
 from .geometry_db import DatabaseConfig, evaluation_shapes  # noqa: E402
@@ -101,7 +102,7 @@ _store.store(name="sfs_torch_schema", node=AppConfig)
 # The groups whose one option is the stage's config class as it is (``database=default`` ...):
 # their values live in the classes alone. The other groups' options are the YAML files of
 # conf/ (features/, integrate/, camera/, refine/, database/blobby.yaml), which override them.
-STAGE_GROUPS = {"database": DatabaseConfig, "silhouette": SilhouetteConfig, "texton": TextonConfig,
+STAGE_GROUPS = {"database": DatabaseConfig, "denoise": DenoiseConfig, "silhouette": SilhouetteConfig, "texton": TextonConfig,
                 "reflectance_map": ReflectanceMapConfig, "training": TrainingConfig, "forest": ForestConfig}
 for _group, _node in STAGE_GROUPS.items():
     _store.store(group=_group, name="default", node=_node)

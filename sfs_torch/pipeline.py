@@ -1,5 +1,7 @@
 """The whole method (paper Fig. 2): one image and its mask in, normals, lighting, confidence out.
 
+0. a noisy image denoised, when the lighting is given (:mod:`sfs_torch.denoise`, not in
+   the paper);
 1. silhouette features of the test mask (:mod:`sfs_torch.silhouette`);
 2. reflectance map estimated from the silhouette (:mod:`sfs_torch.reflectance_map`),
    unless the lighting is given;
@@ -42,6 +44,7 @@ from .forest import VMF, ForestConfig, VMFForest, sample_vmf
 from .forest_cache import CACHE_POLICIES, evict_forests, forest_path, load_forest, save_forest
 from .geometry_db import DatabaseConfig, GeometryDatabase, load_database
 from .geometry_db import _check_config as _check_database_config
+from .denoise import DenoiseConfig, check_denoise_config, denoise_image
 from .image_formation import estimate_noise_sigma
 from .integrability import METHODS, IntegrabilityConfig, Integrator, check_integrability_config
 from .lighting import fit_sh_vectors, render_sh, rotate_sh, sh_basis_vectors
@@ -136,6 +139,8 @@ class PipelineConfig:
         silhouette: the silhouette features of the test image, the lighting estimate, the
             prior check and the refinement's rim
             (:class:`~sfs_torch.silhouette.SilhouetteConfig`).
+        denoise: whether and how the image is denoised before anything reads it
+            (:class:`~sfs_torch.denoise.DenoiseConfig`).
         texton, reflectance_map, features, training, forest, camera, refine: the other
             stages' options.
         integrate: whether and how the normals are integrated into a surface (``depth``):
@@ -173,6 +178,7 @@ class PipelineConfig:
     """
 
     database: DatabaseConfig = field(default_factory=DatabaseConfig)
+    denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
     silhouette: SilhouetteConfig = field(default_factory=SilhouetteConfig)
     texton: TextonConfig = field(default_factory=TextonConfig)
     reflectance_map: ReflectanceMapConfig = field(default_factory=ReflectanceMapConfig)
@@ -324,6 +330,7 @@ def _check_config(cfg: PipelineConfig) -> None:
         _check_focal(cfg.camera.focal)
         _check_principal_point(cfg.camera.principal_point, cfg.camera.focal, warn=False)
     check_refine_config(cfg.refine)
+    check_denoise_config(cfg.denoise)
     if not (isinstance(cfg.refine_rounds, int) and cfg.refine_rounds >= 0):
         raise ValueError(f"refine_rounds must be an integer >= 0, got {cfg.refine_rounds!r}")
     if cfg.normal_rotation not in NORMAL_ROTATIONS:
@@ -551,6 +558,9 @@ def estimate(
     known_lighting = None if lighting is None else _checked_lighting(lighting, image_b, mask_b)
 
     timer = _Timer()
+    if cfg.denoise.when == "always" or (cfg.denoise.when == "known" and known_lighting is not None):
+        with timer("denoise"):
+            image_b = _denoised(image_b, mask_b, cfg.denoise)
     with timer("lighting"):
         if known_lighting is None:
             sh = estimate_lighting(image_b, mask_b, focal=focal, principal_point=principal_point, config=cfg.reflectance_map,
@@ -840,6 +850,16 @@ def _check_database(database: Any, cfg: DatabaseConfig) -> None:
         raise ValueError(f"database does not match config.database: {len(database.shape_names)} shapes and {n} "
                          f"patches, but n_shapes={cfg.n_shapes}, n_views={cfg.n_views}, "
                          f"samples_per_view={cfg.samples_per_view} draw at most {cfg.n_shapes} and {most}")
+
+
+def _denoised(image: Tensor, mask: Tensor, cfg: DenoiseConfig) -> Tensor:
+    """``image`` with the items whose estimated noise is above ``cfg.min_noise`` denoised."""
+    noisy = estimate_noise_sigma(image, mask) > cfg.min_noise
+    if not bool(noisy.any()):
+        return image
+    log.info("denoising %d of %d images (noise above denoise.min_noise %g)", int(noisy.sum()), len(noisy),
+             cfg.min_noise)
+    return torch.where(noisy[:, None, None, None], denoise_image(image, mask, cfg.sigma), image)
 
 
 def _with_image_noise(cfg: PipelineConfig, image: Tensor, mask: Tensor) -> PipelineConfig:
