@@ -4,7 +4,7 @@ A PyTorch implementation of Richter & Roth, "A discriminative approach to perspe
 shape from shading in uncalibrated illumination", Computers & Graphics 2015. The
 modules follow the paper's pipeline (Fig. 2):
 
-- :mod:`sfs_torch.denoise`: a noisy image denoised when the lighting is given (added)
+- :mod:`sfs_torch.denoise`: a noisy image denoised (added)
 - :mod:`sfs_torch.silhouette`: silhouette features and coarse normals (Sec. 6.1)
 - :mod:`sfs_torch.reflectance_map`: lighting from the silhouette (Sec. 7, 8)
 - :mod:`sfs_torch.geometry_db`, :mod:`sfs_torch.shapes`, :mod:`sfs_torch.rendering`:

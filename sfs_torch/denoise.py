@@ -8,11 +8,12 @@ each object pixel with its object neighbours, the background left out
 (normalised convolution: ``blur(I M) / blur(M)``), removes most of it: a white noise's
 standard deviation falls by ``1 / (2 sigma sqrt(pi))``, to 0.28x at ``sigma = 1`` px.
 
-The pipeline denoises only images whose estimated noise is above ``min_noise``, and by
-default only when the lighting is given (``when="known"``): measured in docs/pipeline.md,
-with a given lighting it helps on noisy images and on exact ones it would blur detail the
-forest reads, while with an estimated lighting the denoised image made the lighting
-estimate worse.
+The pipeline denoises only images whose estimated noise is above ``min_noise`` (on exact
+images it would blur detail the forest reads). With a given lighting every stage then
+reads the denoised image (``given="image"``); with an estimated lighting only the forest's
+colour feature does (``estimated="colour"``): there the lighting fits, the textons and the
+refinement read the image as it is, since a wholly denoised image made the estimate
+worse. Both measured in docs/pipeline.md.
 """
 from __future__ import annotations
 
@@ -25,9 +26,10 @@ from torch import Tensor, nn
 
 from ._checks import check_mask, check_same_size, check_shape
 
-__all__ = ["DenoiseConfig", "check_denoise_config", "denoise_image", "ImageDenoiser", "DENOISE_WHEN"]
+__all__ = ["DenoiseConfig", "check_denoise_config", "denoise_image", "ImageDenoiser", "DENOISE_MODES"]
 
-DENOISE_WHEN = ("never", "known", "always")
+# what of the pipeline reads the denoised image: nothing, the forest's colour feature, everything
+DENOISE_MODES = ("none", "colour", "image")
 
 
 @dataclass
@@ -35,23 +37,27 @@ class DenoiseConfig:
     """Options of the denoising stage of :func:`sfs_torch.estimate` (Hydra group ``denoise``).
 
     Attributes:
-        when: ``"never"``, ``"known"`` (only when the lighting is given) or ``"always"``
-            (an estimated lighting too). The default is the measured one (docs/pipeline.md).
+        given: with a given lighting, what reads the denoised image: ``"image"`` (every
+            stage), ``"colour"`` (the forest's colour feature alone) or ``"none"``.
+        estimated: the same with an estimated lighting. The defaults are the measured
+            ones (docs/pipeline.md).
         sigma: standard deviation of the Gaussian, in pixels.
         min_noise: an image is denoised only when its estimated noise
             (:func:`sfs_torch.image_formation.estimate_noise_sigma`, linear RGB) is above
             this; the exact synthetic images read 0.001-0.002, 8-bit camera images 0.006-0.011.
     """
 
-    when: str = "known"
+    given: str = "image"
+    estimated: str = "colour"
     sigma: float = 1.0
     min_noise: float = 0.004
 
 
 def check_denoise_config(cfg: DenoiseConfig, prefix: str = "denoise.") -> None:
     """``ValueError`` naming the first bad option of ``cfg`` (``prefix`` + its key)."""
-    if cfg.when not in DENOISE_WHEN:
-        raise ValueError(f"{prefix}when must be one of {DENOISE_WHEN}, got {cfg.when!r}")
+    for name in ("given", "estimated"):
+        if getattr(cfg, name) not in DENOISE_MODES:
+            raise ValueError(f"{prefix}{name} must be one of {DENOISE_MODES}, got {getattr(cfg, name)!r}")
     for name in ("sigma", "min_noise"):
         value = getattr(cfg, name)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):

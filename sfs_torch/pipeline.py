@@ -1,7 +1,7 @@
 """The whole method (paper Fig. 2): one image and its mask in, normals, lighting, confidence out.
 
-0. a noisy image denoised, when the lighting is given (:mod:`sfs_torch.denoise`, not in
-   the paper);
+0. a noisy image denoised (:mod:`sfs_torch.denoise`, not in the paper): for every stage
+   with a given lighting, for the forest's colour feature with an estimated one;
 1. silhouette features of the test mask (:mod:`sfs_torch.silhouette`);
 2. reflectance map estimated from the silhouette (:mod:`sfs_torch.reflectance_map`),
    unless the lighting is given;
@@ -139,7 +139,7 @@ class PipelineConfig:
         silhouette: the silhouette features of the test image, the lighting estimate, the
             prior check and the refinement's rim
             (:class:`~sfs_torch.silhouette.SilhouetteConfig`).
-        denoise: whether and how the image is denoised before anything reads it
+        denoise: whether and for which stages a noisy image is denoised
             (:class:`~sfs_torch.denoise.DenoiseConfig`).
         texton, reflectance_map, features, training, forest, camera, refine: the other
             stages' options.
@@ -351,7 +351,7 @@ def _check_training_config(cfg: TrainingConfig) -> None:
 
 
 def pixel_features(image: Tensor, mask: Tensor, features: FeatureConfig, texton_cfg: TextonConfig,
-                   silhouette_cfg: Optional[SilhouetteConfig] = None) -> Tensor:
+                   silhouette_cfg: Optional[SilhouetteConfig] = None, colour: Optional[Tensor] = None) -> Tensor:
     """Per-pixel forest features of a test image, in the same order as :func:`training_set`.
 
     Args:
@@ -359,13 +359,15 @@ def pixel_features(image: Tensor, mask: Tensor, features: FeatureConfig, texton_
         mask: :math:`(B, 1, H, W)` bool.
         silhouette_cfg: options of the silhouette features; default
             :class:`~sfs_torch.silhouette.SilhouetteConfig` (the database's).
+        colour: :math:`(B, 3, H, W)` the image the colour feature is read from (a denoised
+            copy, :mod:`sfs_torch.denoise`); default ``image``. The textons read ``image``.
 
     Returns:
         :math:`(B, F, H, W)` features (rgb, silhouette, texton; as enabled).
     """
     parts = []
     if features.rgb:
-        parts.append(image * mask)
+        parts.append((image if colour is None else colour) * mask)
     if features.silhouette:
         parts.append(silhouette_features(mask, silhouette_cfg).to(image.dtype))
     if features.texton:
@@ -558,9 +560,13 @@ def estimate(
     known_lighting = None if lighting is None else _checked_lighting(lighting, image_b, mask_b)
 
     timer = _Timer()
-    if cfg.denoise.when == "always" or (cfg.denoise.when == "known" and known_lighting is not None):
+    denoising = cfg.denoise.given if known_lighting is not None else cfg.denoise.estimated
+    colour = image_b
+    if denoising != "none":
         with timer("denoise"):
-            image_b = _denoised(image_b, mask_b, cfg.denoise)
+            colour = _denoised(image_b, mask_b, cfg.denoise)
+        if denoising == "image":
+            image_b = colour
     with timer("lighting"):
         if known_lighting is None:
             sh = estimate_lighting(image_b, mask_b, focal=focal, principal_point=principal_point, config=cfg.reflectance_map,
@@ -572,7 +578,7 @@ def estimate(
     with timer("database"):
         db = load_database(cfg.database, progress=progress) if database is None else database
     with timer("test features"):
-        feats = pixel_features(image_b, mask_b, cfg.features, cfg.texton, cfg.silhouette)
+        feats = pixel_features(image_b, mask_b, cfg.features, cfg.texton, cfg.silhouette, colour=colour)
 
     given = known_lighting is not None
     train_cfg = cfg

@@ -93,7 +93,8 @@ class TestDenoiseImage:
 
 class TestDenoiseConfig:
     @pytest.mark.parametrize("key, value, match", [
-        ("when", "sometimes", r"denoise.when must be one of \('never', 'known', 'always'\)"),
+        ("given", "sometimes", r"denoise.given must be one of \('none', 'colour', 'image'\)"),
+        ("estimated", "all", r"denoise.estimated must be one of \('none', 'colour', 'image'\)"),
         ("sigma", -0.5, "denoise.sigma must be a finite number >= 0"),
         ("min_noise", float("nan"), "denoise.min_noise must be a finite number >= 0"),
     ])
@@ -121,27 +122,61 @@ class TestPipelineDenoise:
             image, mask, normals, sh = noisy_sphere(seed)
             assert float(estimate_noise_sigma(image[None], mask[None])[0]) > DenoiseConfig.min_noise
             for label in errors:
-                config = dict(TINY, **({"denoise": {"when": "never"}} if label == "never" else {}))
+                config = dict(TINY, **({"denoise": {"given": "none"}} if label == "never" else {}))
                 est = sfs_torch.estimate(image, mask, lighting=sh, config=config, progress=False)
                 errors[label].append(float(normal_metrics(est.normals[None], normals[None], mask[None]).median[0]))
                 assert ("denoise" in est.timings) == (label == "default")
         # measured 3.9 / 3.8 deg denoised against 9.1 / 9.1 without
         assert max(errors["default"]) < 0.6 * min(errors["never"]), errors
 
-    def test_exact_images_and_estimated_lightings_are_left_alone(self):
+    def test_exact_images_are_left_alone(self):
         normals, mask = sphere()
         sh = natural_lightings(0.7)["grace_cathedral"]
         image = render_sh(normals[None], sh[None])[0] * mask
-        never = dict(TINY, denoise={"when": "never"}, refine={"when": "never"})
-        default = dict(TINY, refine={"when": "never"})
-        # below min_noise: the stage runs but changes nothing
-        a = sfs_torch.estimate(image, mask, lighting=sh, config=default, progress=False)
-        b = sfs_torch.estimate(image, mask, lighting=sh, config=never, progress=False)
-        assert "denoise" in a.timings and torch.equal(a.normals, b.normals)
-        # an estimated lighting is not denoised by default, only with when=always
+        # below min_noise: the stage runs but changes nothing, with either lighting
+        for lighting in (sh, None):
+            a, b = (sfs_torch.estimate(image, mask, lighting=lighting, progress=False,
+                                       config=dict(TINY, refine={"when": "never"}, denoise=denoise))
+                    for denoise in ({}, {"given": "none", "estimated": "none"}))
+            assert "denoise" in a.timings and "denoise" not in b.timings
+            assert torch.equal(a.normals, b.normals) and torch.equal(a.lighting, b.lighting)
+
+    def test_an_estimated_lighting_denoises_the_colour_feature_alone(self, monkeypatch):
+        import sfs_torch.pipeline as pipeline
+
         noisy, mask, _, _ = noisy_sphere()
-        a = sfs_torch.estimate(noisy, mask, config=default, progress=False)
-        b = sfs_torch.estimate(noisy, mask, config=never, progress=False)
-        c = sfs_torch.estimate(noisy, mask, config=dict(default, denoise={"when": "always"}), progress=False)
-        assert "denoise" not in a.timings and torch.equal(a.normals, b.normals) and torch.equal(a.lighting, b.lighting)
-        assert "denoise" in c.timings and not torch.equal(c.lighting, a.lighting)
+        seen = {}
+
+        def recording(name, function):
+            def wrapper(image, *args, **kwargs):
+                seen.setdefault(name, []).append((image.clone(), kwargs.get("colour")))
+                return function(image, *args, **kwargs)
+            monkeypatch.setattr(pipeline, name, wrapper)
+
+        recording("estimate_lighting", pipeline.estimate_lighting)
+        recording("pixel_features", pipeline.pixel_features)
+        config = dict(TINY, refine={"when": "never"}, final_round=False, keep_prior=False)  # the prior would keep a sphere
+        est = sfs_torch.estimate(noisy, mask, config=config, progress=False)
+        (lit, _), = seen["estimate_lighting"]
+        (featured, colour), = seen["pixel_features"]
+        # the lighting estimate and the textons read the image as it is, the colour feature its denoised copy
+        assert torch.equal(lit[0], noisy) and torch.equal(featured[0], noisy)
+        torch.testing.assert_close(colour, denoise_image(noisy[None], mask[None]))
+        plain = sfs_torch.estimate(noisy, mask, config=dict(config, denoise={"estimated": "none"}), progress=False)
+        assert "denoise" in est.timings and not torch.equal(est.normals, plain.normals)
+        # everything reads it with estimated="image"
+        seen.clear()
+        sfs_torch.estimate(noisy, mask, config=dict(config, denoise={"estimated": "image"}), progress=False)
+        torch.testing.assert_close(seen["estimate_lighting"][0][0], denoise_image(noisy[None], mask[None]))
+
+
+class TestPixelFeatures:
+    def test_colour_is_read_from_its_own_image_and_the_textons_from_the_image(self):
+        from sfs_torch.pipeline import FeatureConfig, pixel_features
+        from sfs_torch.texton import TextonConfig
+
+        image, mask, _, _ = noisy_sphere()
+        other = denoise_image(image[None], mask[None])
+        plain = pixel_features(image[None], mask[None], FeatureConfig(), TextonConfig())
+        mixed = pixel_features(image[None], mask[None], FeatureConfig(), TextonConfig(), colour=other)
+        assert torch.equal(mixed[:, :3], other * mask) and torch.equal(mixed[:, 3:], plain[:, 3:])
