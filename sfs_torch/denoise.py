@@ -59,13 +59,16 @@ def check_denoise_config(cfg: DenoiseConfig, prefix: str = "denoise.") -> None:
         if getattr(cfg, name) not in DENOISE_MODES:
             raise ValueError(f"{prefix}{name} must be one of {DENOISE_MODES}, got {getattr(cfg, name)!r}")
     for name in ("sigma", "min_noise"):
-        value = getattr(cfg, name)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
-            raise ValueError(f"{prefix}{name} must be a finite number >= 0, got {value!r}")
+        _check_non_negative(getattr(cfg, name), prefix + name)
+
+
+def _check_non_negative(value: float, name: str) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
+        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
 
 
 def denoise_image(image: Tensor, mask: Tensor, sigma: float = DenoiseConfig.sigma) -> Tensor:
-    r"""Average each object pixel with its object neighbours: :math:`(B, 3, H, W), (B, 1, H, W) -> (B, 3, H, W)`.
+    r"""Average each object pixel with its object neighbours: :math:`(B, C, H, W), (B, 1, H, W) -> (B, C, H, W)`.
 
     ``blur(I M) / blur(M)`` with a Gaussian of ``sigma`` pixels (kornia's, truncated at
     3 sigma): background pixels never mix into the object, so a constant object stays
@@ -88,8 +91,7 @@ def denoise_image(image: Tensor, mask: Tensor, sigma: float = DenoiseConfig.sigm
     check_shape(image, "image", "B C H W")
     mask = check_mask(mask, allow_full=True)
     check_same_size(image, "image", mask, "mask")
-    if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not (math.isfinite(sigma) and sigma >= 0):
-        raise ValueError(f"sigma must be a finite number >= 0, got {sigma!r}")
+    _check_non_negative(sigma, "sigma")
     if sigma == 0:
         return image
     size = 2 * math.ceil(3 * sigma) + 1

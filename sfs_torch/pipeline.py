@@ -40,11 +40,11 @@ from torch import Tensor
 
 from ._checks import check_finite, check_mask, check_same_size, to_batch
 from .camera import CameraConfig, _positive_focal, centroid_rotation, rotate_normals_to_camera
+from .denoise import DenoiseConfig, check_denoise_config, denoise_image
 from .forest import VMF, ForestConfig, VMFForest, sample_vmf
 from .forest_cache import CACHE_POLICIES, evict_forests, forest_path, load_forest, save_forest
 from .geometry_db import DatabaseConfig, GeometryDatabase, load_database
 from .geometry_db import _check_config as _check_database_config
-from .denoise import DenoiseConfig, check_denoise_config, denoise_image
 from .image_formation import estimate_noise_sigma
 from .integrability import METHODS, IntegrabilityConfig, Integrator, check_integrability_config
 from .lighting import fit_sh_vectors, render_sh, rotate_sh, sh_basis_vectors

@@ -8,8 +8,8 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from sfs_torch.camera import CameraConfig
-from sfs_torch.denoise import DenoiseConfig
 from sfs_torch.cli import STAGE_GROUPS, AppConfig, _pipeline_config  # registers the schema and the stage groups
+from sfs_torch.denoise import DenoiseConfig
 from sfs_torch.forest import ForestConfig, VMFForest
 from sfs_torch.geometry_db import DatabaseConfig
 from sfs_torch.integrability import IntegrabilityConfig, Integrator
@@ -67,11 +67,11 @@ class TestConfigs:
         cfg = compose_app(hydra_config=True)
         choices = cfg.hydra.runtime.choices
         stages = [name for name in PipelineConfig.__dataclass_fields__ if is_dataclass(getattr(PipelineConfig(), name))]
-        assert set(stages) == {"database", "denoise", "silhouette", "texton", "reflectance_map", "features", "training", "forest",
-                               "integrate", "camera", "refine"}
+        assert set(stages) == {"database", "denoise", "silhouette", "texton", "reflectance_map", "features", "training",
+                               "forest", "integrate", "camera", "refine"}
         assert {stage: choices[stage] for stage in stages} == {
-            "database": "default", "denoise": "default", "silhouette": "default", "texton": "default", "reflectance_map": "default",
-            "features": "all", "training": "default", "forest": "default", "integrate": "none", "camera": "ortho",
+            "database": "default", "denoise": "default", "silhouette": "default", "texton": "default",
+            "reflectance_map": "default", "features": "all", "training": "default", "forest": "default", "integrate": "none", "camera": "ortho",
             "refine": "always",
         }
 

@@ -155,7 +155,8 @@ class TestPipelineDenoise:
 
         recording("estimate_lighting", pipeline.estimate_lighting)
         recording("pixel_features", pipeline.pixel_features)
-        config = dict(TINY, refine={"when": "never"}, final_round=False, keep_prior=False)  # the prior would keep a sphere
+        # without the prior check, which keeps a sphere's silhouette prior whatever the features
+        config = dict(TINY, refine={"when": "never"}, final_round=False, keep_prior=False)
         est = sfs_torch.estimate(noisy, mask, config=config, progress=False)
         (lit, _), = seen["estimate_lighting"]
         (featured, colour), = seen["pixel_features"]
