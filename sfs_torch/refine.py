@@ -40,7 +40,6 @@ Both minimise, per image,
 """
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass, replace
 from typing import Optional, Sequence, Tuple
 
@@ -57,7 +56,6 @@ from .silhouette import SilhouetteConfig, coarse_normals
 __all__ = ["RefineConfig", "check_refine_config", "photometric_residual", "free_lighting_residual", "RefinementLoss", "Refinement", "refinement_loss", "refine_shape_and_lighting",
            "PhotometricRefiner", "rim_pixels"]
 
-log = logging.getLogger(__name__)
 
 MAX_CONFIDENCE_WEIGHT = 3.0
 
@@ -433,6 +431,7 @@ def _optimise(lighting, image, mask, normals, weights, rim_normals, focal, princ
         before = loss_of(light)
     start_light = light.detach().clone()
     if cfg.iterations > 0 and bool(torch.isfinite(before).all()):
+        overflow_loss = 1e3 * (before.sum().abs() + 1)
         optimiser = torch.optim.LBFGS(params, lr=1.0, max_iter=cfg.iterations, history_size=20,
                                       line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
 
@@ -440,13 +439,17 @@ def _optimise(lighting, image, mask, normals, weights, rim_normals, focal, princ
             optimiser.zero_grad()
             loss = loss_of(light).sum()
             loss.backward()
+            if not bool(torch.isfinite(loss)):
+                # A trial step that overflowed: the strong-Wolfe line search steps back from
+                # a loss far above the start's (with no slope to follow), whereas a NaN or
+                # an infinite one derails its interpolation.
+                for p in params:
+                    p.grad.zero_()
+                return overflow_loss
             return loss
 
-        try:
-            with torch.enable_grad():
-                optimiser.step(closure)
-        except RuntimeError as err:  # a line search that ran off to overflow
-            log.warning("photometric refinement diverged (%s); keeping its start", err)
+        with torch.enable_grad():
+            optimiser.step(closure)
     with torch.no_grad():
         value = variable.value()
         after = loss_of(light)

@@ -1,3 +1,4 @@
+import dataclasses
 import math
 import re
 
@@ -6,6 +7,7 @@ import torch
 from scenes import sphere
 
 import sfs_torch
+import sfs_torch.refine as refine_module
 from sfs_torch.integrability import field_normals
 from sfs_torch.lighting import natural_lightings, render_sh, rotate_sh
 from sfs_torch.metrics import lmse, normal_metrics
@@ -236,6 +238,42 @@ class TestRefineShapeAndLighting:
         assert float(strided.loss_after[0]) < 0.9 * float(strided.loss_before[0])
         torch.testing.assert_close(strided.normals, plain.normals)
         torch.testing.assert_close(strided.lighting, plain.lighting)
+
+    def test_a_trial_step_that_overflows_is_stepped_back_from(self, scene, monkeypatch):
+        # the loss is NaN below a lighting floor the optimum lies beyond: the line search
+        # must back off and go on (a NaN trial step used to derail it, raising IndexError
+        # from inside torch's strong-Wolfe search)
+        _, mask, sh, image, _, _ = scene
+        normals = scene[0]
+        floor = 1.1 * float(sh[0, 0, 0])
+        loss = refine_module.refinement_loss
+
+        def nan_below_floor(normals, lighting, *args, **kwargs):
+            out = loss(normals, lighting, *args, **kwargs)
+            return dataclasses.replace(out, total=torch.where(lighting[:, 0, 0] < floor, math.nan, out.total))
+
+        monkeypatch.setattr(refine_module, "refinement_loss", nan_below_floor)
+        out = refine_shape_and_lighting(image, mask, normals, 1.15 * sh,
+                                        config=RefineConfig(model="surface", iterations=50))
+        assert float(out.loss_after[0]) < 0.5 * float(out.loss_before[0])
+        assert float(out.lighting[0, 0, 0]) >= floor
+        assert bool(torch.isfinite(out.normals).all() and torch.isfinite(out.lighting).all())
+
+    def test_an_error_inside_the_optimisation_is_raised(self, scene, monkeypatch):
+        # not swallowed as a "divergence" that silently returns the start
+        _, mask, sh, image, start, start_sh = scene
+        calls = []
+        loss = refine_module.refinement_loss
+
+        def failing(*args, **kwargs):
+            calls.append(1)
+            if len(calls) == 3:  # a trial step inside the optimisation
+                raise RuntimeError("boom")
+            return loss(*args, **kwargs)
+
+        monkeypatch.setattr(refine_module, "refinement_loss", failing)
+        with pytest.raises(RuntimeError, match="boom"):
+            refine_shape_and_lighting(image, mask, start, start_sh, config=RefineConfig(model="surface", iterations=5))
 
     def test_module_equals_function(self, scene):
         _, mask, sh, image, start, start_sh = scene
