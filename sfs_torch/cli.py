@@ -103,7 +103,8 @@ _store.store(name="sfs_torch_schema", node=AppConfig)
 # their values live in the classes alone. The other groups' options are the YAML files of
 # conf/ (features/, integrate/, camera/, refine/, database/blobby.yaml), which override them.
 STAGE_GROUPS = {"database": DatabaseConfig, "denoise": DenoiseConfig, "silhouette": SilhouetteConfig,
-                "texton": TextonConfig, "reflectance_map": ReflectanceMapConfig, "training": TrainingConfig, "forest": ForestConfig}
+                "texton": TextonConfig, "reflectance_map": ReflectanceMapConfig, "training": TrainingConfig,
+                "forest": ForestConfig}
 for _group, _node in STAGE_GROUPS.items():
     _store.store(group=_group, name="default", node=_node)
 # hydra.run.dir is `out` when given, else a dated folder (oc.select keeps a null value).

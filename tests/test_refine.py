@@ -243,8 +243,7 @@ class TestRefineShapeAndLighting:
         # the loss is NaN below a lighting floor the optimum lies beyond: the line search
         # must back off and go on (a NaN trial step used to derail it, raising IndexError
         # from inside torch's strong-Wolfe search)
-        _, mask, sh, image, _, _ = scene
-        normals = scene[0]
+        normals, mask, sh, image, _, _ = scene
         floor = 1.1 * float(sh[0, 0, 0])
         loss = refine_module.refinement_loss
 
