@@ -163,6 +163,10 @@ class PipelineConfig:
             with an estimated lighting, asked again after the joint refinement, against the
             refined surface, each under its own best smooth shading
             (:func:`sfs_torch.refine.free_lighting_residual`).
+        prior_check_highlight: in that check after the refinement, pixels brighter than a
+            field's fitted shading by more than this (relative to the mean image value) count
+            as a specular highlight, at a fixed cost whatever the normals
+            (``free_lighting_residual``'s ``highlight``); ``None`` scores them like the others.
         final_round: with an estimated lighting, after the joint refinement: the
             lighting refitted to the refined normals, a forest trained for it without the
             brightness/colour jitter, and the joint refinement again from that forest's
@@ -191,6 +195,7 @@ class PipelineConfig:
     refine_rounds: int = 1
     valid_refit: bool = True
     keep_prior: bool = True
+    prior_check_highlight: Optional[float] = 0.1
     final_round: bool = True
     normal_rotation: str = "centroid"
     conv_samples_per_tree: int = 1
@@ -335,6 +340,10 @@ def _check_config(cfg: PipelineConfig) -> None:
         raise ValueError(f"refine_rounds must be an integer >= 0, got {cfg.refine_rounds!r}")
     if cfg.normal_rotation not in NORMAL_ROTATIONS:
         raise ValueError(f"normal_rotation must be one of {NORMAL_ROTATIONS}, got {cfg.normal_rotation!r}")
+    highlight = cfg.prior_check_highlight
+    if highlight is not None and not (isinstance(highlight, (int, float)) and not isinstance(highlight, bool)
+                                      and math.isfinite(highlight) and highlight > 0):
+        raise ValueError(f"prior_check_highlight must be a number > 0 or null, got {highlight!r}")
     if not (isinstance(cfg.conv_samples_per_tree, int) and cfg.conv_samples_per_tree >= 1):
         raise ValueError(f"conv_samples_per_tree must be an integer >= 1, got {cfg.conv_samples_per_tree!r}")
 
@@ -629,7 +638,8 @@ def estimate(
                     depth[b], normals[b], sh[b], confidence[b] = (x[0] for x in last)
         if cfg.keep_prior and not given and depth is not None:
             with timer("prior check after refinement"):
-                back = _prior_explains_better(image_b, mask_b, normals, ~skip, focal, principal_point, cfg.silhouette)
+                back = _prior_explains_better(image_b, mask_b, normals, ~skip, focal, principal_point, cfg.silhouette,
+                                              cfg.prior_check_highlight)
                 if bool(back.any()):
                     depth, normals, sh = _back_to_prior(image_b, mask_b, depth, normals, sh, confidence, back, cfg,
                                                         focal, principal_point)
@@ -696,7 +706,8 @@ FREE_FIT_MAX_CLIPPED = 0.25
 
 
 def _prior_explains_better(image: Tensor, mask: Tensor, normals: Tensor, among: Tensor, focal: Optional[float],
-                           principal_point: Optional[tuple], silhouette: SilhouetteConfig) -> Tensor:
+                           principal_point: Optional[tuple], silhouette: SilhouetteConfig,
+                           highlight: Optional[float]) -> Tensor:
     """``(B,)`` bool: of the images in ``among`` (B,) bool, those that Eq. 10's coarse
     normals explain better than ``normals``, each field under its own best smooth shading
     (:func:`~sfs_torch.refine.free_lighting_residual`).
@@ -706,7 +717,8 @@ def _prior_explains_better(image: Tensor, mask: Tensor, normals: Tensor, among: 
     check before the refinement (9-term lightings) can prefer a forest's normals, trained
     for the refit, that bend to fit it. Only for images with at most
     ``FREE_FIT_MAX_CLIPPED`` of the object's pixels clipped at 0 or 1: the shading is
-    fitted to the others and unbounded on them.
+    fitted to the others and unbounded on them. ``highlight`` is ``free_lighting_residual``'s:
+    a surface bent to explain a specular highlight gains nothing there.
     """
     clipped = (mask & ~_unclipped_pixels(image, mask)).flatten(1).sum(1)
     items = (among & (clipped <= FREE_FIT_MAX_CLIPPED * mask.flatten(1).sum(1))).nonzero()[:, 0]
@@ -714,7 +726,8 @@ def _prior_explains_better(image: Tensor, mask: Tensor, normals: Tensor, among: 
     if len(items) > 0:
         image, mask, normals = image[items], mask[items], normals[items]
         coarse = coarse_normals(mask, focal=focal, principal_point=principal_point, config=silhouette).to(normals.dtype)
-        better[items] = free_lighting_residual(coarse, image, mask) < free_lighting_residual(normals, image, mask)
+        better[items] = (free_lighting_residual(coarse, image, mask, highlight=highlight)
+                         < free_lighting_residual(normals, image, mask, highlight=highlight))
     for b in better.nonzero()[:, 0].tolist():
         log.info("image %d: the silhouette prior explains it better than the refined surface under a free smooth "
                  "shading; keeping the prior", b)

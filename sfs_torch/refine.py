@@ -196,7 +196,7 @@ def photometric_residual(
 
 def free_lighting_residual(
     normals: Tensor, image: Tensor, mask: Tensor, *, degree: int = 4, delta: float = RefineConfig.delta,
-    dark_level: float = RefineConfig.dark_level,
+    dark_level: float = RefineConfig.dark_level, highlight: Optional[float] = None, highlight_rounds: int = 3,
 ) -> Tensor:
     """How well normals explain an image under the best smooth shading of them, whatever the lighting.
 
@@ -206,30 +206,55 @@ def free_lighting_residual(
     pixels not clipped at 0 (``dark_level``) or 1 (all of them where every one is), then
     scored like :func:`photometric_residual`.
 
+    With ``highlight`` (relative to the mean image value), pixels brighter than the fitted
+    shading by more than that in any channel count as specular highlights, which no
+    smooth diffuse shading of the true normals explains: the shading is refitted without
+    them (``highlight_rounds`` times), and each costs the penalty of a residual of
+    ``highlight``, so normals bent to explain a highlight gain nothing there.
+
     Args:
         normals: :math:`(B, 3, H, W)`; image: :math:`(B, 3, H, W)`; mask: :math:`(B, 1, H, W)` bool.
 
     Returns:
         :math:`(B,)`.
     """
+    if highlight is not None and not highlight > 0:
+        raise ValueError(f"highlight must be > 0 or None, got {highlight}")
+    if not (isinstance(highlight_rounds, int) and highlight_rounds >= 0):
+        raise ValueError(f"highlight_rounds must be an integer >= 0, got {highlight_rounds!r}")
     powers = [(a, b, c) for a in range(degree + 1) for b in range(degree + 1 - a)
               for c in range(degree + 1 - a - b)]
     unclipped = _unclipped_pixels(image, mask, dark_level)
+    scale = _masked_mean(image, mask).clamp_min(1e-6)
     shading = torch.zeros_like(image)
+    bright = torch.zeros_like(mask)
     # one image at a time on its object's pixels: the background is most of a typical image
     for item in range(image.shape[0]):
         m = mask[item, 0]
         n = normals[item][:, m].double()
+        values = image[item][:, m].double().T
         power = [torch.stack([n[i] ** k for k in range(degree + 1)]) for i in range(3)]
         basis = torch.stack([power[0][a] * power[1][b] * power[2][c] for a, b, c in powers], 1)  # (N, K)
         fit = unclipped[item, 0][m]
         fit = fit if bool(fit.any()) else torch.ones_like(fit)
-        a_fit = basis[fit]
-        # the monomials are dependent on the unit sphere (35 of them span 25 functions at degree 4)
-        ridge = 1e-6 * len(a_fit) * torch.eye(len(powers), dtype=basis.dtype, device=basis.device)
-        coefficients = torch.linalg.solve(a_fit.T @ a_fit + ridge, a_fit.T @ image[item][:, m].double().T[fit])
-        shading[item][:, m] = (basis @ coefficients).T.to(image.dtype)
-    return _robust_residual(shading, image, mask, delta, dark_level)
+        highlights = torch.zeros_like(fit)
+        for _ in range(1 + (highlight_rounds if highlight is not None else 0)):
+            kept = fit & ~highlights
+            a_fit = basis[kept]
+            # the monomials are dependent on the unit sphere (35 of them span 25 functions at degree 4)
+            ridge = 1e-6 * len(a_fit) * torch.eye(len(powers), dtype=basis.dtype, device=basis.device)
+            coefficients = torch.linalg.solve(a_fit.T @ a_fit + ridge, a_fit.T @ values[kept])
+            fitted = basis @ coefficients
+            if highlight is not None:
+                found = ((values - fitted) > highlight * float(scale[item])).any(1)
+                # keep enough pixels to determine the fit
+                highlights = found if bool((fit & ~found).sum() >= len(powers)) else highlights
+        shading[item][:, m] = fitted.T.to(image.dtype)
+        bright[item, 0][m] = highlights
+    penalty = _robust_penalty(shading, image, mask, delta, dark_level)
+    if highlight is not None:
+        penalty = torch.where(bright, (highlight ** 2 + delta ** 2) ** 0.5 - delta, penalty)
+    return _masked_mean(penalty, mask)
 
 
 def _unclipped_pixels(image: Tensor, mask: Tensor, dark_level: float = RefineConfig.dark_level) -> Tensor:
@@ -242,13 +267,18 @@ def _unclipped_pixels(image: Tensor, mask: Tensor, dark_level: float = RefineCon
 def _robust_residual(shading: Tensor, image: Tensor, mask: Tensor, delta: float, dark_level: float) -> Tensor:
     """Mean Charbonnier penalty of ``(shading - image) / mean(image)`` over the mask,
     one-sided at clipped pixels: (B,)."""
+    return _masked_mean(_robust_penalty(shading, image, mask, delta, dark_level), mask)
+
+
+def _robust_penalty(shading: Tensor, image: Tensor, mask: Tensor, delta: float, dark_level: float) -> Tensor:
+    """:func:`_robust_residual` per pixel and channel: (B, C, H, W)."""
     scale = _masked_mean(image, mask).clamp_min(1e-6)[:, None, None, None]
     residual = shading - image
     # clipped pixels only bound the shading: an attached shadow may render below 0 and a
     # highlight above 1
     residual = torch.where(image <= dark_level, residual.clamp_min(0),
                            torch.where(image >= 1, residual.clamp_max(0), residual)) / scale
-    return _masked_mean(torch.sqrt(residual * residual + delta * delta) - delta, mask)
+    return torch.sqrt(residual * residual + delta * delta) - delta
 
 
 def refinement_loss(

@@ -99,6 +99,55 @@ class TestFreeLightingResidual:
         assert torch.allclose(both[:1], free_lighting_residual(normals, image, mask), rtol=1e-5)
 
 
+@pytest.fixture(scope="module")
+def glossy(scene):
+    """The scene's sphere with a Blinn-Phong highlight (peak 0.3 of the diffuse shading
+    facing the light, exponent 40), as the realistic formation adds."""
+    from sfs_torch.image_formation import blinn_phong, dominant_light
+
+    normals, mask, sh, image, _, _ = scene
+    direction, colour = dominant_light(sh[0])
+    inside = mask[0, 0]
+    lobe = blinn_phong(normals[0][:, inside].T, torch.tensor([0.0, 0.0, 1.0]), direction, 0.3 * colour, 40.0)
+    glossy = image.clone()
+    glossy[0][:, inside] += lobe.T
+    return normals, mask, glossy.clamp(0, 1), lobe
+
+
+class TestFreeLightingResidualHighlights:
+    def test_an_image_without_highlights_scores_as_without_the_option(self, scene):
+        normals, mask, _, image, start, _ = scene
+        for field in normals, start:
+            plain = free_lighting_residual(field, image, mask)
+            assert torch.allclose(free_lighting_residual(field, image, mask, highlight=0.1), plain, rtol=1e-6)
+
+    def test_a_highlight_costs_the_true_normals_its_area_only(self, glossy):
+        normals, mask, image, lobe = glossy
+        plain = float(free_lighting_residual(normals, image, mask)[0])
+        tolerant = float(free_lighting_residual(normals, image, mask, highlight=0.1)[0])
+        # the lobe is brighter than 0.1 x the mean on a few percent of the pixels; each costs the cap
+        mean = float(image[0][:, mask[0, 0]].mean())
+        share = float((lobe > 0.1 * mean).any(1).double().mean())
+        cap = (0.1 ** 2 + 0.02 ** 2) ** 0.5 - 0.02
+        assert 0 < share < 0.2
+        assert tolerant < 1.2 * cap * share + 1e-3
+        assert tolerant < 0.5 * plain
+
+    def test_wrong_normals_still_explain_it_worse(self, glossy, scene):
+        normals, mask, image, _ = glossy
+        start = scene[4]
+        truth = float(free_lighting_residual(normals, image, mask, highlight=0.1)[0])
+        assert float(free_lighting_residual(start, image, mask, highlight=0.1)[0]) > 1.5 * truth
+
+    @pytest.mark.parametrize("kwargs, message", [({"highlight": 0.0}, "highlight must be > 0"),
+                                                 ({"highlight": float("nan")}, "highlight must be > 0"),
+                                                 ({"highlight": 0.1, "highlight_rounds": -1}, "highlight_rounds")])
+    def test_bad_highlight_options(self, scene, kwargs, message):
+        normals, mask, _, image, _, _ = scene
+        with pytest.raises(ValueError, match=message):
+            free_lighting_residual(normals, image, mask, **kwargs)
+
+
 class TestRefinementLoss:
     def test_gradcheck(self):
         torch.manual_seed(0)
