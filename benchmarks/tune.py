@@ -60,6 +60,11 @@ def main() -> None:
     parser.add_argument("--lights", type=int, default=3)
     parser.add_argument("--first-light", type=int, default=0,
                         help="skip this many lightings first (the same lightings --lights would give after them)")
+    parser.add_argument("--light-seed", type=int, default=0,
+                        help="validation side: the seed of the lightings' random orientations")
+    parser.add_argument("--exposure", type=float, default=None,
+                        help="validation side: scale each lighting so that a lit sphere's 95th percentile is this "
+                             "(validation_lightings' own is 0.9; the R&H probes sit at 0.10-0.35)")
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--focal", type=float, default=None)
     parser.add_argument("--degradation", default="exact", choices=list(DEGRADATIONS))
@@ -73,7 +78,10 @@ def main() -> None:
     labels = [label for label, _ in ABLATION] if args.ablation else [json.dumps(v) for v in variants]
     shapes = scene_shapes(args.shapes, args.side, sphere=not args.no_sphere)
     n = args.first_light + args.lights
-    lightings = (validation_lightings(n) if args.side == "validation" else evaluation_lightings(n))[args.first_light:]
+    if args.side == "validation":
+        lightings = validation_lightings(n, seed=args.light_seed, exposure=args.exposure)[args.first_light:]
+    else:
+        lightings = evaluation_lightings(n)[args.first_light:]
     rows = []
     for scene in synthetic_scenes(shapes, lightings, resolution=args.resolution,
                                   focal=args.focal, formation=DEGRADATIONS[args.degradation]):

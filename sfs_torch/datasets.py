@@ -14,6 +14,7 @@ The image formation is set by :class:`FormationConfig`: the default is the paper
 """
 from __future__ import annotations
 
+import math
 import zlib
 from dataclasses import dataclass, replace
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple
@@ -131,18 +132,22 @@ def evaluation_lightings(n: int = 3, albedo: float = 0.8) -> List[Tuple[str, Ten
     return [(name, probes[name]) for name in EVALUATION_LIGHTINGS[:n]]
 
 
-def validation_lightings(n: int, seed: int = 0) -> List[Tuple[str, Tensor]]:
+def validation_lightings(n: int, seed: int = 0, exposure: Optional[float] = None) -> List[Tuple[str, Tensor]]:
     """``n`` Poly Haven lightings under random hand-held camera orientations (tune on these).
 
-    Each is scaled so that the 95th percentile of a lit sphere is 0.9 (a well exposed image).
+    Each is scaled so that the 95th percentile of a lit sphere is ``exposure``, by default
+    0.9 (a well exposed image; the R&H probes of :func:`evaluation_lightings` sit at 0.10-0.35).
     """
+    exposure = 0.9 if exposure is None else exposure
+    if not (math.isfinite(exposure) and exposure > 0):
+        raise ValueError(f"exposure must be a number > 0, got {exposure}")
     env = environment_maps()
     rotations = random_camera_rotations(n, torch.Generator().manual_seed(seed)).float()
     out = []
     for i in range(n):
         sh = rotate_sh(env.sh[i % len(env.names)], rotations[i])
         sphere = render_sphere(sh[None], 64)[0]
-        out.append((f"{env.names[i % len(env.names)]}_{i}", sh * 0.9 / torch.quantile(sphere[sphere > 0], 0.95)))
+        out.append((f"{env.names[i % len(env.names)]}_{i}", sh * exposure / torch.quantile(sphere[sphere > 0], 0.95)))
     return out
 
 

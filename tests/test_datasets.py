@@ -117,6 +117,19 @@ class TestSides:
         assert not set(names) & {name for name, _ in evaluation_lightings(7)}
         assert len(set(n.rsplit("_", 1)[0] for n in names)) == 8
 
+    @pytest.mark.parametrize("exposure", [None, 0.15])
+    def test_validation_exposure_sets_the_lit_spheres_95th_percentile(self, exposure):
+        from sfs_torch.lighting import render_sphere
+
+        for _, sh in validation_lightings(3, seed=1, exposure=exposure):
+            sphere = render_sphere(sh[None], 64)[0]
+            assert float(torch.quantile(sphere[sphere > 0], 0.95)) == pytest.approx(exposure or 0.9, rel=1e-4)
+
+    @pytest.mark.parametrize("exposure", [0.0, -1.0, float("inf")])
+    def test_bad_exposure(self, exposure):
+        with pytest.raises(ValueError, match="exposure must be a number > 0"):
+            validation_lightings(2, exposure=exposure)
+
     def test_test_and_validation_shapes_are_disjoint(self):
         cfg = DatabaseConfig(collection="blobby", n_shapes=3, n_views=2, resolution=48, samples_per_view=40,
                              n_eval_shapes=4, seed=0)
