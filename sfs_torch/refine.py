@@ -238,17 +238,20 @@ def free_lighting_residual(
         fit = unclipped[item, 0][m]
         fit = fit if bool(fit.any()) else torch.ones_like(fit)
         highlights = torch.zeros_like(fit)
-        for _ in range(1 + (highlight_rounds if highlight is not None else 0)):
+        for _ in range(1 + highlight_rounds):
             kept = fit & ~highlights
             a_fit = basis[kept]
             # the monomials are dependent on the unit sphere (35 of them span 25 functions at degree 4)
             ridge = 1e-6 * len(a_fit) * torch.eye(len(powers), dtype=basis.dtype, device=basis.device)
             coefficients = torch.linalg.solve(a_fit.T @ a_fit + ridge, a_fit.T @ values[kept])
             fitted = basis @ coefficients
-            if highlight is not None:
-                found = ((values - fitted) > highlight * float(scale[item])).any(1)
-                # keep enough pixels to determine the fit
-                highlights = found if bool((fit & ~found).sum() >= len(powers)) else highlights
+            if highlight is None:
+                break
+            found = ((values - fitted) > highlight * float(scale[item])).any(1)
+            # keep enough pixels to determine the fit
+            if torch.equal(found, highlights) or int((fit & ~found).sum()) < len(powers):
+                break
+            highlights = found
         shading[item][:, m] = fitted.T.to(image.dtype)
         bright[item, 0][m] = highlights
     penalty = _robust_penalty(shading, image, mask, delta, dark_level)
