@@ -15,3 +15,17 @@ def sphere(size=64, radius=26.0, centre=(0.0, 0.0)):
     mask = (r2 < 1)[None]
     normals = torch.stack([x, y, torch.sqrt((1 - r2).clamp_min(0))]) * mask
     return normals, mask
+
+
+def with_highlight(image, normals, mask, sh, peak=0.3, shininess=40.0):
+    """``image`` (3, S, S) plus the realistic formation's Blinn-Phong highlight of lighting
+    ``sh`` (3, 9) on ``normals`` (3, S, S) inside ``mask`` (1, S, S), orthographic view,
+    clipped to [0, 1]; and the highlight itself, ``(N, 3)`` over the mask's pixels."""
+    from sfs_torch.image_formation import blinn_phong, dominant_light
+
+    direction, colour = dominant_light(sh)
+    inside = mask[0]
+    lobe = blinn_phong(normals[:, inside].T, torch.tensor([0.0, 0.0, 1.0]), direction, peak * colour, shininess)
+    glossy = image.clone()
+    glossy[:, inside] += lobe.T
+    return glossy.clamp(0, 1), lobe

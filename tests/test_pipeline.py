@@ -4,7 +4,7 @@ import time
 
 import pytest
 import torch
-from scenes import sphere
+from scenes import sphere, with_highlight
 
 import sfs_torch
 from sfs_torch.lighting import natural_lightings, render_sh
@@ -279,15 +279,9 @@ class TestKeepPrior:
         # a specular highlight: the refined surface bends to explain it, so under a plain
         # residual it fits better than Eq. 10's exact sphere; the check after the refinement
         # prices highlights at a fixed cost (prior_check_highlight)
-        from sfs_torch.image_formation import blinn_phong, dominant_light
-
         normals, mask = sphere()
         sh = natural_lightings(0.8)["uffizi_gallery"]
-        image = render_sh(normals[None], sh[None])[0] * mask
-        direction, colour = dominant_light(sh)
-        lobe = blinn_phong(normals[:, mask[0]].T, torch.tensor([0.0, 0.0, 1.0]), direction, 0.3 * colour, 40.0)
-        image[:, mask[0]] += lobe.T
-        image = image.clamp(0, 1)
+        image, _ = with_highlight(render_sh(normals[None], sh[None])[0] * mask, normals, mask, sh)
         # the check before the refinement off, so the forest's surface is refined and checked
         monkeypatch.setattr(pipeline, "_better_prior", lambda *a, **k: None)
         errors = {}

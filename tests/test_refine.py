@@ -4,7 +4,7 @@ import re
 
 import pytest
 import torch
-from scenes import sphere
+from scenes import sphere, with_highlight
 
 import sfs_torch
 import sfs_torch.refine as refine_module
@@ -101,17 +101,10 @@ class TestFreeLightingResidual:
 
 @pytest.fixture(scope="module")
 def glossy(scene):
-    """The scene's sphere with a Blinn-Phong highlight (peak 0.3 of the diffuse shading
-    facing the light, exponent 40), as the realistic formation adds."""
-    from sfs_torch.image_formation import blinn_phong, dominant_light
-
+    """The scene's sphere with the realistic formation's specular highlight."""
     normals, mask, sh, image, _, _ = scene
-    direction, colour = dominant_light(sh[0])
-    inside = mask[0, 0]
-    lobe = blinn_phong(normals[0][:, inside].T, torch.tensor([0.0, 0.0, 1.0]), direction, 0.3 * colour, 40.0)
-    glossy = image.clone()
-    glossy[0][:, inside] += lobe.T
-    return normals, mask, glossy.clamp(0, 1), lobe
+    glossy, lobe = with_highlight(image[0], normals[0], mask[0], sh[0])
+    return normals, mask, glossy[None], lobe
 
 
 class TestFreeLightingResidualHighlights:
