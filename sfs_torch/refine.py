@@ -256,7 +256,8 @@ def free_lighting_residual(
         bright[item, 0][m] = highlights
     penalty = _robust_penalty(shading, image, mask, delta, dark_level)
     if highlight is not None:
-        penalty = torch.where(bright, (highlight ** 2 + delta ** 2) ** 0.5 - delta, penalty)
+        cap = _charbonnier(torch.tensor(highlight, dtype=torch.float64), delta)
+        penalty = torch.where(bright, cap.to(penalty), penalty)
     return _masked_mean(penalty, mask)
 
 
@@ -281,7 +282,12 @@ def _robust_penalty(shading: Tensor, image: Tensor, mask: Tensor, delta: float, 
     # highlight above 1
     residual = torch.where(image <= dark_level, residual.clamp_min(0),
                            torch.where(image >= 1, residual.clamp_max(0), residual)) / scale
-    return torch.sqrt(residual * residual + delta * delta) - delta
+    return _charbonnier(residual, delta)
+
+
+def _charbonnier(x: Tensor, delta: float) -> Tensor:
+    """The Charbonnier penalty ``sqrt(x^2 + delta^2) - delta``, elementwise."""
+    return torch.sqrt(x * x + delta * delta) - delta
 
 
 def refinement_loss(
