@@ -164,9 +164,10 @@ class PipelineConfig:
             refined surface, each under its own best smooth shading
             (:func:`sfs_torch.refine.free_lighting_residual`).
         prior_check_highlight: in that check after the refinement, pixels brighter than a
-            field's fitted shading by more than this (relative to the mean image value) count
-            as a specular highlight, at a fixed cost whatever the normals
-            (``free_lighting_residual``'s ``highlight``); ``None`` scores them like the others.
+            field's fitted shading by more than this (relative to the mean image value), and
+            by more than 99 % of the other pixels fall below it, count as a specular
+            highlight, at a fixed cost whatever the normals (``free_lighting_residual``'s
+            ``highlight``); ``None`` scores them like the others.
         final_round: with an estimated lighting, after the joint refinement: the
             lighting refitted to the refined normals, a forest trained for it without the
             brightness/colour jitter, and the joint refinement again from that forest's

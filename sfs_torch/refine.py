@@ -196,7 +196,8 @@ def photometric_residual(
 
 def free_lighting_residual(
     normals: Tensor, image: Tensor, mask: Tensor, *, degree: int = 4, delta: float = RefineConfig.delta,
-    dark_level: float = RefineConfig.dark_level, highlight: Optional[float] = None, highlight_rounds: int = 3,
+    dark_level: float = RefineConfig.dark_level, highlight: Optional[float] = None, highlight_quantile: float = 0.99,
+    highlight_rounds: int = 3,
 ) -> Tensor:
     """How well normals explain an image under the best smooth shading of them, whatever the lighting.
 
@@ -207,10 +208,15 @@ def free_lighting_residual(
     scored like :func:`photometric_residual`.
 
     With ``highlight`` (relative to the mean image value), pixels brighter than the fitted
-    shading by more than that in any channel count as specular highlights, which no
+    shading by more than a threshold in any channel count as specular highlights, which no
     smooth diffuse shading of the true normals explains: the shading is refitted without
-    them (``highlight_rounds`` times), and each costs the penalty of a residual of
-    ``highlight``, so normals bent to explain a highlight gain nothing there.
+    them (``highlight_rounds`` times), and each costs the penalty of a residual at the
+    threshold, so normals bent to explain a highlight gain nothing there. The threshold is
+    ``highlight`` or, where larger, the ``highlight_quantile`` quantile of how far the other
+    fitted pixels fall *below* the shading (their largest deficit over the channels): noise,
+    8-bit steps and a wrong field's shape error leave residuals of both signs, a highlight
+    only bright ones, so on a dark, noisy image or for a poor field only the outliers of the
+    bright side beyond the dark side's are capped.
 
     Args:
         normals: :math:`(B, 3, H, W)`; image: :math:`(B, 3, H, W)`; mask: :math:`(B, 1, H, W)` bool.
@@ -220,6 +226,8 @@ def free_lighting_residual(
     """
     if highlight is not None and not highlight > 0:
         raise ValueError(f"highlight must be > 0 or None, got {highlight}")
+    if not 0 <= highlight_quantile <= 1:
+        raise ValueError(f"highlight_quantile must be in [0, 1], got {highlight_quantile}")
     if not (isinstance(highlight_rounds, int) and highlight_rounds >= 0):
         raise ValueError(f"highlight_rounds must be an integer >= 0, got {highlight_rounds!r}")
     powers = [(a, b, c) for a in range(degree + 1) for b in range(degree + 1 - a)
@@ -228,6 +236,7 @@ def free_lighting_residual(
     scale = _masked_mean(image, mask).clamp_min(1e-6)
     shading = torch.zeros_like(image)
     bright = torch.zeros_like(mask)
+    threshold = torch.full((image.shape[0],), highlight or 0.0, dtype=torch.float64, device=image.device)
     # one image at a time on its object's pixels: the background is most of a typical image
     for item in range(image.shape[0]):
         m = mask[item, 0]
@@ -247,16 +256,21 @@ def free_lighting_residual(
             fitted = basis @ coefficients
             if highlight is None:
                 break
-            found = ((values - fitted) > highlight * float(scale[item])).any(1)
+            below = (fitted - values).amax(1)[kept] / float(scale[item])
+            level = max(highlight, float(torch.quantile(below, highlight_quantile)))
+            found = ((values - fitted) > level * float(scale[item])).any(1)
             # keep enough pixels to determine the fit
-            if torch.equal(found, highlights) or int((fit & ~found).sum()) < len(powers):
+            if int((fit & ~found).sum()) < len(powers):
+                break
+            threshold[item] = level
+            if torch.equal(found, highlights):
                 break
             highlights = found
         shading[item][:, m] = fitted.T.to(image.dtype)
         bright[item, 0][m] = highlights
     penalty = _robust_penalty(shading, image, mask, delta, dark_level)
     if highlight is not None:
-        cap = _charbonnier(torch.tensor(highlight, dtype=torch.float64), delta)
+        cap = _charbonnier(threshold, delta)[:, None, None, None]
         penalty = torch.where(bright, cap.to(penalty), penalty)
     return _masked_mean(penalty, mask)
 

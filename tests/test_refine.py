@@ -126,6 +126,19 @@ class TestFreeLightingResidualHighlights:
         assert tolerant < 1.2 * cap * share + 1e-3
         assert tolerant < 0.5 * plain
 
+    def test_noise_of_both_signs_is_not_taken_for_highlights(self, scene):
+        # a dark, noisy image: 0.1 x the mean image value is half a noise sigma here
+        normals, mask, _, image, _, _ = scene
+        mean = float(image[0][:, mask[0, 0]].mean())
+        noise = torch.randn(image.shape, generator=torch.Generator().manual_seed(0)) * 0.2 * mean
+        noisy = torch.where(mask, image + noise, image)
+        plain = float(free_lighting_residual(normals, noisy, mask)[0])
+        tolerant = float(free_lighting_residual(normals, noisy, mask, highlight=0.1)[0])
+        # a threshold of 0.1 x the mean alone (quantile 0) caps the bright half of the noise
+        fixed = float(free_lighting_residual(normals, noisy, mask, highlight=0.1, highlight_quantile=0.0)[0])
+        assert abs(tolerant - plain) < 0.03 * plain
+        assert fixed < 0.7 * plain
+
     def test_wrong_normals_still_explain_it_worse(self, glossy, scene):
         normals, mask, image, _ = glossy
         start = scene[4]
@@ -134,6 +147,7 @@ class TestFreeLightingResidualHighlights:
 
     @pytest.mark.parametrize("kwargs, message", [({"highlight": 0.0}, "highlight must be > 0"),
                                                  ({"highlight": float("nan")}, "highlight must be > 0"),
+                                                 ({"highlight": 0.1, "highlight_quantile": 1.5}, "highlight_quantile"),
                                                  ({"highlight": 0.1, "highlight_rounds": -1}, "highlight_rounds")])
     def test_bad_highlight_options(self, scene, kwargs, message):
         normals, mask, _, image, _, _ = scene
