@@ -5,6 +5,7 @@ clear ``ValueError`` instead of a stack trace from deep inside an operation.
 """
 from __future__ import annotations
 
+import math
 from typing import Optional, Sequence, Tuple
 
 import torch
@@ -15,6 +16,7 @@ __all__ = [
     "check_finite",
     "check_mask",
     "check_same_size",
+    "is_number",
     "to_batch",
     "from_batch",
 ]
@@ -37,6 +39,13 @@ def check_shape(x: Tensor, name: str, spec: str, floating: bool = True) -> None:
         raise ValueError(f"{name} must have shape ({', '.join(dims)}), got {tuple(x.shape)}")
     if floating and not x.is_floating_point():
         raise ValueError(f"{name} must be a floating-point tensor, got {x.dtype}")
+
+
+def is_number(value, minimum: float = -math.inf, *, strict: bool = False) -> bool:
+    """Whether ``value`` is a finite real number (an ``int`` or ``float``, not a ``bool``)
+    at least ``minimum``, or above it with ``strict``: the test of a numeric option."""
+    return (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            and (value > minimum if strict else value >= minimum))
 
 
 def check_finite(x: Tensor, name: str) -> None:

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._checks import check_finite, check_mask, check_same_size, check_shape, from_batch, to_batch
+from ._checks import check_finite, check_mask, check_same_size, check_shape, from_batch, is_number, to_batch
 from .datasets import Scene
 from .integrability import depth_to_normals
 from .io import read_image, read_lighting, read_mask, read_normals_npy, read_normals_png
@@ -548,13 +548,12 @@ def _read_camera_json(path: Path) -> Tuple[Optional[float], Optional[Tuple[float
         raise ValueError(f"'{path}': unknown keys {unknown}; expected {expected}")
     focal = content.get("focal")
     if focal is not None:
-        if isinstance(focal, bool) or not isinstance(focal, (int, float)) or not (math.isfinite(focal) and focal > 0):
+        if not is_number(focal, 0, strict=True):
             raise ValueError(f"'{path}': focal must be a positive number of pixels or null, got {focal!r}")
         focal = float(focal)
     point = content.get("principal_point")
     if point is not None:
-        if (not isinstance(point, list) or len(point) != 2
-                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in point)):
+        if not isinstance(point, list) or len(point) != 2 or not all(is_number(v) for v in point):
             raise ValueError(f"'{path}': principal_point must be [cx, cy] (two numbers, pixels) or null, got {point!r}")
         point = (float(point[0]), float(point[1]))
     return focal, point

@@ -14,7 +14,6 @@ The image formation is set by :class:`FormationConfig`: the default is the paper
 """
 from __future__ import annotations
 
-import math
 import zlib
 from dataclasses import dataclass, replace
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple
@@ -24,6 +23,7 @@ import trimesh
 from torch import Tensor
 
 from . import image_formation as formation_ops
+from ._checks import is_number
 from .camera import pixel_grid
 from .geometry_db import DatabaseConfig, evaluation_shapes
 from .lighting import natural_lightings, render_sh, render_sphere, rotate_sh
@@ -139,7 +139,7 @@ def validation_lightings(n: int, seed: int = 0, exposure: Optional[float] = None
     0.9 (a well exposed image; the R&H probes of :func:`evaluation_lightings` sit at 0.10-0.35).
     """
     exposure = 0.9 if exposure is None else exposure
-    if not (math.isfinite(exposure) and exposure > 0):
+    if not is_number(exposure, 0, strict=True):
         raise ValueError(f"exposure must be a number > 0, got {exposure}")
     env = environment_maps()
     rotations = random_camera_rotations(n, torch.Generator().manual_seed(seed)).float()

@@ -24,7 +24,7 @@ import torch
 from kornia.filters import gaussian_blur2d
 from torch import Tensor, nn
 
-from ._checks import check_mask, check_same_size, check_shape
+from ._checks import check_mask, check_same_size, check_shape, is_number
 
 __all__ = ["DenoiseConfig", "check_denoise_config", "denoise_image", "ImageDenoiser", "DENOISE_MODES"]
 
@@ -63,7 +63,7 @@ def check_denoise_config(cfg: DenoiseConfig, prefix: str = "denoise.") -> None:
 
 
 def _check_non_negative(value: float, name: str) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
+    if not is_number(value, 0):
         raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
 
 

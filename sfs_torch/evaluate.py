@@ -25,7 +25,6 @@ import csv
 import io as _io
 import json
 import logging
-import math
 import os
 import re
 import shlex
@@ -49,6 +48,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from torch import Tensor  # noqa: E402
 
 from ._app import exit_unless_writable, output_folder, parse_device  # noqa: E402
+from ._checks import is_number  # noqa: E402
 from .datasets import DEGRADATIONS, EVALUATION_LIGHTINGS, Scene  # noqa: E402
 from .geometry_db import GeometryDatabase, load_database  # noqa: E402
 from .metrics import lmse, normal_metrics  # noqa: E402
@@ -546,7 +546,7 @@ def _synthetic_cases(ds: DictConfig, pipeline: PipelineConfig) -> Cases:
     if ds.side == "test" and ds.lights > len(EVALUATION_LIGHTINGS):
         raise ValueError(f"dataset.lights must be at most {len(EVALUATION_LIGHTINGS)} on the test side "
                          f"(the R&H probes), got {ds.lights}")
-    if ds.focal is not None and not (isinstance(ds.focal, (int, float)) and math.isfinite(ds.focal) and ds.focal > 0):
+    if ds.focal is not None and not is_number(ds.focal, 0, strict=True):
         raise ValueError(f"dataset.focal must be a positive focal length in pixels or null, got {ds.focal!r}")
     if ds.root is not None:
         log.warning("dataset=synthetic renders its scenes: dataset.root=%s is ignored", ds.root)

@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from scipy import ndimage
 from torch import Tensor
 
-from ._checks import check_mask, from_batch, to_batch
+from ._checks import check_mask, from_batch, is_number, to_batch
 from .camera import rotate_normals_to_camera
 
 __all__ = [
@@ -103,7 +103,7 @@ def check_silhouette_config(cfg: SilhouetteConfig, prefix: str = "") -> None:
     """
     for name in ("prune_distance", "prune_angle", "prune_depth_ratio", "prune_window", "gradient_sigma"):
         value = getattr(cfg, name)
-        if not (math.isfinite(value) and value >= 0):
+        if not is_number(value, 0):
             raise ValueError(f"{prefix}{name} must be a finite number >= 0, got {value!r}")
     if cfg.prune_angle > 180:
         raise ValueError(f"{prefix}prune_angle must be in [0, 180] degrees, got {cfg.prune_angle!r}")

@@ -1,3 +1,4 @@
+import math
 from dataclasses import asdict, is_dataclass, replace
 from pathlib import Path
 
@@ -7,6 +8,7 @@ from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from sfs_torch._checks import is_number
 from sfs_torch.camera import CameraConfig
 from sfs_torch.cli import STAGE_GROUPS, AppConfig, _pipeline_config  # registers the schema and the stage groups
 from sfs_torch.denoise import DenoiseConfig
@@ -190,3 +192,13 @@ class TestLaunchers:
     def test_without_out_sweeps_go_to_a_dated_folder(self):
         cfg = compose_with_hydra()
         assert cfg.hydra.sweep.dir.startswith("multirun/")
+
+
+@pytest.mark.parametrize("value, minimum, strict, expected", [
+    (0.5, 0, False, True), (0, 0, False, True), (0, 0, True, False), (3, 0, True, True),
+    (-1.0, 0, False, False), (-1.0, -math.inf, False, True),
+    (True, 0, False, False), (float("nan"), 0, False, False), (float("inf"), 0, False, False),
+    ("1", 0, False, False), (None, 0, False, False),
+])
+def test_a_numeric_option_is_a_finite_real_number(value, minimum, strict, expected):
+    assert is_number(value, minimum, strict=strict) is expected
