@@ -878,7 +878,9 @@ def _denoised(image: Tensor, mask: Tensor, cfg: DenoiseConfig) -> Tensor:
         return image
     log.info("denoising %d of %d images (noise above denoise.min_noise %g)", int(noisy.sum()), len(noisy),
              cfg.min_noise)
-    return torch.where(noisy[:, None, None, None], denoise_image(image, mask, cfg.sigma), image)
+    out = image.clone()
+    out[noisy] = denoise_image(image[noisy], mask[noisy], cfg.sigma)
+    return out
 
 
 def _with_image_noise(cfg: PipelineConfig, image: Tensor, mask: Tensor) -> PipelineConfig:

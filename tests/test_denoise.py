@@ -141,6 +141,15 @@ class TestPipelineDenoise:
             assert "denoise" in a.timings and "denoise" not in b.timings
             assert torch.equal(a.normals, b.normals) and torch.equal(a.lighting, b.lighting)
 
+    def test_a_mixed_batch_denoises_its_noisy_items_alone(self):
+        from sfs_torch.pipeline import _denoised
+
+        noisy, mask, normals, sh = noisy_sphere()
+        exact = render_sh(normals[None], sh[None])[0] * mask
+        out = _denoised(torch.stack([noisy, exact]), torch.stack([mask, mask]), DenoiseConfig())
+        torch.testing.assert_close(out[0], denoise_image(noisy[None], mask[None])[0])
+        assert torch.equal(out[1], exact)
+
     def test_an_estimated_lighting_denoises_the_colour_feature_alone(self, monkeypatch):
         import sfs_torch.pipeline as pipeline
 
