@@ -165,7 +165,7 @@ class PipelineConfig:
             (:func:`sfs_torch.refine.free_lighting_residual`).
         prior_check_highlight: in that check after the refinement, pixels brighter than a
             field's fitted shading by more than this (relative to the mean image value), and
-            by more than 99 % of the other pixels fall below it, count as a specular
+            by more than 95 % of the other pixels fall below it, count as a specular
             highlight, at a fixed cost whatever the normals (``free_lighting_residual``'s
             ``highlight``); ``None`` scores them like the others.
         final_round: with an estimated lighting, after the joint refinement: the

@@ -196,7 +196,7 @@ def photometric_residual(
 
 def free_lighting_residual(
     normals: Tensor, image: Tensor, mask: Tensor, *, degree: int = 4, delta: float = RefineConfig.delta,
-    dark_level: float = RefineConfig.dark_level, highlight: Optional[float] = None, highlight_quantile: float = 0.99,
+    dark_level: float = RefineConfig.dark_level, highlight: Optional[float] = None, highlight_quantile: float = 0.95,
     highlight_rounds: int = 3,
 ) -> Tensor:
     """How well normals explain an image under the best smooth shading of them, whatever the lighting.
