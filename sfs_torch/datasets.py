@@ -70,11 +70,11 @@ class FormationConfig:
     def __post_init__(self) -> None:
         for name in ("specular", "shininess", "exposure_stops", "white_balance", "noise", "shot_noise"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and value >= 0):
-                raise ValueError(f"FormationConfig.{name} must be a non-negative number, got {value!r}")
-        if not (isinstance(self.directions, int) and self.directions > 0):
+            if not is_number(value, 0):
+                raise ValueError(f"FormationConfig.{name} must be a finite non-negative number, got {value!r}")
+        if not (is_number(self.directions, 0, strict=True) and isinstance(self.directions, int)):
             raise ValueError(f"FormationConfig.directions must be a positive integer, got {self.directions!r}")
-        if self.bits is not None and not (isinstance(self.bits, int) and 1 <= self.bits <= 16):
+        if self.bits is not None and not (isinstance(self.bits, int) and is_number(self.bits, 1) and self.bits <= 16):
             raise ValueError(f"FormationConfig.bits must be None or an integer in [1, 16], got {self.bits!r}")
 
 

@@ -38,7 +38,9 @@ def _scenes(formation, shapes=None, **kwargs):
 
 class TestFormationConfig:
     @pytest.mark.parametrize("field, value", [("specular", -0.1), ("noise", float("nan")), ("directions", 0),
-                                              ("bits", 0), ("exposure_stops", "1")])
+                                              ("bits", 0), ("exposure_stops", "1"),
+                                              ("exposure_stops", float("inf")), ("shot_noise", True),
+                                              ("directions", True), ("bits", True)])
     def test_bad_values(self, field, value):
         with pytest.raises(ValueError, match=f"FormationConfig.{field}"):
             FormationConfig(**{field: value})
