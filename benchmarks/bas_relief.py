@@ -1,0 +1,142 @@
+"""How much of the estimated-lighting error is a bas-relief transform of the surface.
+
+Under orthographic projection a generalised bas-relief (GBR) transform of a surface,
+``z -> lam z + mu x + nu y``, with the lighting transformed alike, leaves the occluding
+contour's normals as they are and changes the shading of a uniform-albedo object only
+through an albedo factor (Belhumeur et al. 1999). On the normals of the default call
+(lighting estimated) this script finds, per image, the transform that brings them
+closest to the truth, over three families:
+
+- **scale**: ``lam`` alone (``mu = nu = 0``), a deeper or flatter relief;
+- **tilt**: ``mu, nu`` alone (``lam = 1``), a plane added to the depth;
+- **both**: every ``(lam, mu, nu)`` of the grids.
+
+The transformed normals are ``normalize(lam n_x - mu n_z, lam n_y - nu n_z, n_z)``. These
+are oracles (they use the true normals): they say how much error a cue that picked the
+transform could remove, not that any cue can. With ``--hypotheses`` the tilts are also
+tried as hypotheses produced alike, with no ground truth: the default's normals tilted,
+the lighting refitted to them (``refit_lighting``) and the joint refinement run from them
+(with the tilted normals as its prior). The tilt whose refinement ends at the lowest loss
+is picked, and so is the one with the lowest photometric residual. That measures whether
+the refinement's own energy can tell the tilt.
+
+    python benchmarks/bas_relief.py --shapes 7 --lights 3 --exposure 0.2
+    python benchmarks/bas_relief.py --shapes 7 --lights 3 --exposure 0.2 --hypotheses
+"""
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import statistics
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import torch  # noqa: E402
+import torch.nn.functional as F  # noqa: E402
+
+import sfs_torch  # noqa: E402
+from sfs_torch.datasets import (  # noqa: E402
+    evaluation_lightings,
+    scene_shapes,
+    synthetic_scenes,
+    validation_lightings,
+)
+from sfs_torch.geometry_db import load_database  # noqa: E402
+from sfs_torch.metrics import normal_metrics  # noqa: E402
+from sfs_torch.pipeline import resolve_config  # noqa: E402
+from sfs_torch.reflectance_map import refit_lighting  # noqa: E402
+from sfs_torch.refine import photometric_residual, refine_shape_and_lighting  # noqa: E402
+from sfs_torch.silhouette import coarse_normals  # noqa: E402
+
+SCALES = (0.6, 0.8, 1.0, 1.25, 1.6, 2.0)
+TILTS = (-1.0, -0.6, -0.3, 0.0, 0.3, 0.6, 1.0)
+
+
+def bas_relief(normals: torch.Tensor, scale: float, tilt_x: float, tilt_y: float) -> torch.Tensor:
+    """The normals of the surface ``scale * z + tilt_x * x + tilt_y * y``, (B, 3, H, W) -> (B, 3, H, W)."""
+    x, y, z = normals.unbind(1)
+    return F.normalize(torch.stack([scale * x - tilt_x * z, scale * y - tilt_y * z, z], 1), dim=1)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--side", choices=["validation", "test"], default="validation")
+    parser.add_argument("--shapes", type=int, default=7)
+    parser.add_argument("--lights", type=int, default=3)
+    parser.add_argument("--first-light", type=int, default=0)
+    parser.add_argument("--exposure", type=float, default=None,
+                        help="validation side: as benchmarks/tune.py's --exposure")
+    parser.add_argument("--resolution", type=int, default=256)
+    parser.add_argument("--hypotheses", type=float, nargs="?", const=0.5, default=None, metavar="T",
+                        help="also try the tilts (mu, nu) in {-T, 0, T}^2 as refined hypotheses (default T: 0.5)")
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "bas_relief.json")
+    args = parser.parse_args()
+    if args.hypotheses is not None and not args.hypotheses > 0:
+        parser.error(f"--hypotheses must be positive, got {args.hypotheses}")
+    shapes = scene_shapes(args.shapes, args.side, sphere=False)
+    n = args.first_light + args.lights
+    lightings = (validation_lightings(n, exposure=args.exposure) if args.side == "validation"
+                 else evaluation_lightings(n))[args.first_light:]
+    cfg = resolve_config({"training": {"cache_forests": "never"}})
+    database = load_database(cfg.database, progress=False)
+    grid = list(itertools.product(SCALES, TILTS, TILTS))
+    rows = []
+    for scene in synthetic_scenes(shapes, lightings, resolution=args.resolution):
+        start = time.perf_counter()
+        mask, image = scene.mask, scene.image
+
+        def error(normals):
+            return float(normal_metrics(normals * mask, scene.normals, mask).median[0])
+
+        est = sfs_torch.estimate(image, mask, config={"training": {"cache_forests": "never"}}, progress=False,
+                                 database=database)
+        errors = {t: error(bas_relief(est.normals, *t)) for t in grid}
+        families = {"scale": lambda t: t[1] == t[2] == 0, "tilt": lambda t: t[0] == 1, "both": lambda t: True}
+        row = {"case": scene.name, "prior": error(coarse_normals(mask)), "default": errors[(1.0, 0.0, 0.0)]}
+        for name, member in families.items():
+            best = min((t for t in grid if member(t)), key=errors.get)
+            row[name], row[f"{name}_transform"] = errors[best], best
+        line = (f"{scene.name:<44} default {row['default']:6.2f} | scale {row['scale']:6.2f} tilt {row['tilt']:6.2f}"
+                f" both {row['both']:6.2f} at {row['both_transform']}")
+        if args.hypotheses is not None:
+            row["hypotheses"] = []
+            for mu, nu in itertools.product((-args.hypotheses, 0.0, args.hypotheses), repeat=2):
+                start_normals = bas_relief(est.normals, 1.0, mu, nu) * mask
+                lighting = refit_lighting(image, mask, start_normals, valid=cfg.valid_refit).to(image.dtype)
+                refined = refine_shape_and_lighting(image, mask, start_normals, lighting, confidence=est.confidence,
+                                                    config=cfg.refine, silhouette=cfg.silhouette)
+                row["hypotheses"].append({
+                    "tilt": (mu, nu), "error": error(refined.normals), "loss": float(refined.loss_after[0]),
+                    "photometric": float(photometric_residual(refined.normals, refined.lighting, image, mask)[0]),
+                })
+            for key in ("loss", "photometric"):
+                picked = min(row["hypotheses"], key=lambda h: h[key])
+                row[f"by_{key}"], row[f"by_{key}_tilt"] = picked["error"], picked["tilt"]
+            line += f" | by loss {row['by_loss']:6.2f} at {row['by_loss_tilt']}"
+        rows.append(row)
+        print(line + f"  ({time.perf_counter() - start:.0f} s)", flush=True)
+
+    columns = ["prior", "default", "scale", "tilt", "both"]
+    if args.hypotheses is not None:
+        columns += ["by_loss", "by_photometric"]
+    labels = {"prior": "silhouette prior", "default": "the default call", "scale": "oracle scale",
+              "tilt": "oracle tilt", "both": "oracle scale and tilt", "by_loss": "tilt by refinement loss",
+              "by_photometric": "tilt by photometric residual"}
+    summary = {c: {"median": statistics.median(r[c] for r in rows), "mean": statistics.mean(r[c] for r in rows)}
+               for c in columns}
+    print(f"\n{len(rows)} images ({args.side} side), lighting estimated; median angular error per image (deg)")
+    print(f"{'':<32}{'median':>8}{'mean':>8}")
+    for c in columns:
+        print(f"{labels[c]:<32}{summary[c]['median']:>8.2f}{summary[c]['mean']:>8.2f}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "summary": summary,
+                                    "rows": rows}, indent=2))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
