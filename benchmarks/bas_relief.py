@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import os
 import statistics
 import time
@@ -51,6 +50,8 @@ from sfs_torch.pipeline import resolve_config  # noqa: E402
 from sfs_torch.reflectance_map import refit_lighting  # noqa: E402
 from sfs_torch.refine import photometric_residual, refine_shape_and_lighting  # noqa: E402
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
+
+from _results import write_results  # noqa: E402
 
 SCALES = (0.6, 0.8, 1.0, 1.25, 1.6, 2.0)
 TILTS = (-1.0, -0.6, -0.3, 0.0, 0.3, 0.6, 1.0)
@@ -132,10 +133,7 @@ def main() -> None:
     print(f"{'':<32}{'median':>8}{'mean':>8}")
     for c in columns:
         print(f"{labels[c]:<32}{summary[c]['median']:>8.2f}{summary[c]['mean']:>8.2f}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "summary": summary,
-                                    "rows": rows}, indent=2))
-    print(f"wrote {args.out}")
+    write_results(args, summary=summary, rows=rows)
 
 
 if __name__ == "__main__":

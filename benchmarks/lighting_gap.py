@@ -21,7 +21,6 @@ lighting from a worse one.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import time
@@ -42,6 +41,8 @@ from sfs_torch.metrics import lmse, normal_metrics  # noqa: E402
 from sfs_torch.pipeline import resolve_config  # noqa: E402
 from sfs_torch.refine import photometric_residual  # noqa: E402
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
+
+from _results import write_results  # noqa: E402
 
 FOREST_ALONE = {"keep_prior": False, "refine": {"when": "never"}, "training": {"cache_forests": "never"}}
 
@@ -110,10 +111,7 @@ def main() -> None:
               f"{s['integrability']:>8.2f}{100 * s['photometric']:>10.3f}")
     print(f"alpha = {args.alphas[last]:g} scores lowest of all alphas: integrability on {lowest['integrability']}, "
           f"photometric on {lowest['photometric']} of {len(rows)} images")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "summary": summary,
-                                    "lowest_at_last_alpha": lowest, "rows": rows}, indent=2))
-    print(f"wrote {args.out}")
+    write_results(args, summary=summary, lowest_at_last_alpha=lowest, rows=rows)
 
 
 if __name__ == "__main__":

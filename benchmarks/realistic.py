@@ -29,6 +29,8 @@ from sfs_torch.datasets import DEGRADATIONS, evaluation_lightings, scene_shapes,
 from sfs_torch.metrics import lmse, normal_metrics  # noqa: E402
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
 
+from _results import write_results  # noqa: E402
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -80,10 +82,8 @@ def main() -> None:
         print(f"{degradation:<12}{s['images']:>7}{s['silhouette']:>11.2f}{s['estimated']:>10.2f}{s['known']:>8.2f}"
               f"{s['estimated'] / s['silhouette']:>9.2f}{s['estimated'] / s['known']:>10.2f}{s['lmse']:>9.5f}"
               f"{s['sphere_estimated_minus_silhouette']:>24.2f}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "summary": summary,
-                                    "rows": rows}, indent=2))
-    print(f"\nwrote {args.out}")
+    print()
+    write_results(args, summary=summary, rows=rows)
 
 
 if __name__ == "__main__":

@@ -17,7 +17,6 @@ is not constrained).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 from pathlib import Path
@@ -31,6 +30,8 @@ from sfs_torch.datasets import evaluation_lightings, scene_shapes, synthetic_sce
 from sfs_torch.lighting import render_sphere  # noqa: E402
 from sfs_torch.metrics import normal_metrics  # noqa: E402
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
+
+from _results import write_results  # noqa: E402
 
 VARIANTS = {
     "default": {},
@@ -87,10 +88,7 @@ def main() -> None:
         s = summary[name]
         print(f"{name:<20}{s['median']:>8.2f}{s['mean']:>8.2f}{s['invalid']:>9d}{s['lowest_shading']:>8.3f}")
     print("invalid: lightings shading the visible hemisphere below -1 % of their peak; lowest: the lowest shading / peak")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "summary": summary,
-                                    "rows": rows}, indent=2))
-    print(f"wrote {args.out}")
+    write_results(args, summary=summary, rows=rows)
 
 
 if __name__ == "__main__":

@@ -37,6 +37,8 @@ from sfs_torch.datasets import (  # noqa: E402
 from sfs_torch.metrics import lmse, normal_metrics  # noqa: E402
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
 
+from _results import write_results  # noqa: E402
+
 # (label, overrides): each row adds to the one above it; the last gives the true lighting
 ABLATION = [
     ("the paper's method", {"refine_rounds": 0, "keep_prior": False, "valid_refit": False,
@@ -118,11 +120,7 @@ def main() -> None:
               f"{s['seconds']:>8.1f}  {labels[i]}")
     print("median, mean: of the per-image median angular errors (deg); lMSE: median; "
           "worse: images on which the variant's error exceeds the silhouette prior's")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "silhouette": silhouette,
-                                    "summary": summary,
-                                    "rows": rows}, indent=2))
-    print(f"wrote {args.out}")
+    write_results(args, silhouette=silhouette, summary=summary, rows=rows)
 
 
 if __name__ == "__main__":
