@@ -22,6 +22,7 @@ the refinement's own energy can tell the tilt.
 
     python benchmarks/bas_relief.py --shapes 7 --lights 3 --exposure 0.2
     python benchmarks/bas_relief.py --shapes 7 --lights 3 --exposure 0.2 --hypotheses
+    python benchmarks/bas_relief.py --side test --shapes 6 --lights 5 --degradation all
 """
 from __future__ import annotations
 
@@ -39,6 +40,7 @@ import torch.nn.functional as F  # noqa: E402
 
 import sfs_torch  # noqa: E402
 from sfs_torch.datasets import (  # noqa: E402
+    DEGRADATIONS,
     evaluation_lightings,
     scene_shapes,
     synthetic_scenes,
@@ -72,6 +74,7 @@ def main() -> None:
     parser.add_argument("--exposure", type=float, default=None,
                         help="validation side: as benchmarks/tune.py's --exposure")
     parser.add_argument("--resolution", type=int, default=256)
+    parser.add_argument("--degradation", default="exact", choices=list(DEGRADATIONS))
     parser.add_argument("--hypotheses", type=float, nargs="?", const=0.5, default=None, metavar="T",
                         help="also try the tilts (mu, nu) in {-T, 0, T}^2 as refined hypotheses (default T: 0.5)")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "bas_relief.json")
@@ -86,7 +89,8 @@ def main() -> None:
     database = load_database(cfg.database, progress=False)
     grid = list(itertools.product(SCALES, TILTS, TILTS))
     rows = []
-    for scene in synthetic_scenes(shapes, lightings, resolution=args.resolution):
+    for scene in synthetic_scenes(shapes, lightings, resolution=args.resolution,
+                                  formation=DEGRADATIONS[args.degradation]):
         start = time.perf_counter()
         mask, image = scene.mask, scene.image
 
@@ -129,7 +133,8 @@ def main() -> None:
               "by_photometric": "tilt by photometric residual"}
     summary = {c: {"median": statistics.median(r[c] for r in rows), "mean": statistics.mean(r[c] for r in rows)}
                for c in columns}
-    print(f"\n{len(rows)} images ({args.side} side), lighting estimated; median angular error per image (deg)")
+    print(f"\n{len(rows)} images ({args.side} side, {args.degradation}), lighting estimated; "
+          "median angular error per image (deg)")
     print(f"{'':<32}{'median':>8}{'mean':>8}")
     for c in columns:
         print(f"{labels[c]:<32}{summary[c]['median']:>8.2f}{summary[c]['mean']:>8.2f}")
