@@ -57,6 +57,8 @@ from _results import write_results  # noqa: E402
 
 SCALES = (0.6, 0.8, 1.0, 1.25, 1.6, 2.0)
 TILTS = (-1.0, -0.6, -0.3, 0.0, 0.3, 0.6, 1.0)
+# which (scale, tilt_x, tilt_y) of the grid each oracle may choose
+FAMILIES = {"scale": lambda t: t[1] == t[2] == 0, "tilt": lambda t: t[0] == 1, "both": lambda t: True}
 
 
 def bas_relief(normals: torch.Tensor, scale: float, tilt_x: float, tilt_y: float) -> torch.Tensor:
@@ -97,12 +99,10 @@ def main() -> None:
         def error(normals):
             return float(normal_metrics(normals * mask, scene.normals, mask).median[0])
 
-        est = sfs_torch.estimate(image, mask, config={"training": {"cache_forests": "never"}}, progress=False,
-                                 database=database)
+        est = sfs_torch.estimate(image, mask, config=cfg, progress=False, database=database)
         errors = {t: error(bas_relief(est.normals, *t)) for t in grid}
-        families = {"scale": lambda t: t[1] == t[2] == 0, "tilt": lambda t: t[0] == 1, "both": lambda t: True}
         row = {"case": scene.name, "prior": error(coarse_normals(mask)), "default": errors[(1.0, 0.0, 0.0)]}
-        for name, member in families.items():
+        for name, member in FAMILIES.items():
             best = min((t for t in grid if member(t)), key=errors.get)
             row[name], row[f"{name}_transform"] = errors[best], best
         line = (f"{scene.name:<44} default {row['default']:6.2f} | scale {row['scale']:6.2f} tilt {row['tilt']:6.2f}"
