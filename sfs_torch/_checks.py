@@ -48,6 +48,12 @@ def is_number(value, minimum: float = -math.inf, *, strict: bool = False) -> boo
             and (value > minimum if strict else value >= minimum))
 
 
+def is_integer(value, minimum: float = -math.inf, maximum: float = math.inf) -> bool:
+    """Whether ``value`` is an ``int`` (not a ``bool``) in ``[minimum, maximum]``: the test
+    of an integer option."""
+    return isinstance(value, int) and not isinstance(value, bool) and minimum <= value <= maximum
+
+
 def check_finite(x: Tensor, name: str) -> None:
     """Raise ``ValueError`` when ``x`` holds NaN or infinite values."""
     # NaN and inf propagate into the sum, so a finite sum (one cheap pass, no boolean

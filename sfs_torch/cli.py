@@ -33,6 +33,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from . import io  # noqa: E402
 from ._app import exit_unless_writable, output_folder, parse_device  # noqa: E402
+from ._checks import is_integer  # noqa: E402
 from .denoise import DenoiseConfig  # noqa: E402
 from .figures import confidence_display_max, summary_figure  # noqa: E402
 from .forest import ForestConfig  # noqa: E402
@@ -180,7 +181,7 @@ def _novel_view(cfg: DictConfig, pipeline_cfg: PipelineConfig) -> _NovelView:
                          f"{view.elevation_deg!r}") from None
     if not (np.isfinite(azimuth) and np.isfinite(elevation)):
         raise ValueError(f"novel_view.azimuth_deg and elevation_deg must be finite, got {azimuth}, {elevation}")
-    if not (isinstance(resolution, int) and not isinstance(resolution, bool) and resolution > 0):
+    if not is_integer(resolution, 1):
         raise ValueError(f"novel_view.resolution must be a positive integer, got {resolution!r}")
     name = renderer_name(view.renderer, "novel_view.renderer")
     if pipeline_cfg.integrate.method == "none":  # no depth map, no novel view: nothing to draw

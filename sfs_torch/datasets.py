@@ -23,7 +23,7 @@ import trimesh
 from torch import Tensor
 
 from . import image_formation as formation_ops
-from ._checks import is_number
+from ._checks import is_integer, is_number
 from .camera import pixel_grid
 from .geometry_db import DatabaseConfig, evaluation_shapes
 from .lighting import natural_lightings, render_sh, render_sphere, rotate_sh
@@ -72,9 +72,9 @@ class FormationConfig:
             value = getattr(self, name)
             if not is_number(value, 0):
                 raise ValueError(f"FormationConfig.{name} must be a finite non-negative number, got {value!r}")
-        if not (is_number(self.directions, 0, strict=True) and isinstance(self.directions, int)):
+        if not is_integer(self.directions, 1):
             raise ValueError(f"FormationConfig.directions must be a positive integer, got {self.directions!r}")
-        if self.bits is not None and not (isinstance(self.bits, int) and is_number(self.bits, 1) and self.bits <= 16):
+        if self.bits is not None and not is_integer(self.bits, 1, 16):
             raise ValueError(f"FormationConfig.bits must be None or an integer in [1, 16], got {self.bits!r}")
 
 

@@ -48,7 +48,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from torch import Tensor  # noqa: E402
 
 from ._app import exit_unless_writable, output_folder, parse_device  # noqa: E402
-from ._checks import is_number  # noqa: E402
+from ._checks import is_integer, is_number  # noqa: E402
 from .datasets import DEGRADATIONS, EVALUATION_LIGHTINGS, Scene  # noqa: E402
 from .geometry_db import GeometryDatabase, load_database  # noqa: E402
 from .metrics import lmse, normal_metrics  # noqa: E402
@@ -527,7 +527,7 @@ class Cases:
 def _check_int(value: Any, name: str, low: int, allow_none: bool = False) -> None:
     if value is None and allow_none:
         return
-    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+    if not is_integer(value, low):
         raise ValueError(f"{name} must be an integer >= {low}{' or null' if allow_none else ''}, got {value!r}")
 
 

@@ -46,7 +46,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._checks import check_finite, check_shape
+from ._checks import check_finite, check_shape, is_integer
 
 __all__ = [
     "VMF",
@@ -316,7 +316,7 @@ class VMFForest:
     def _validate_params(self, n_features: int) -> int:
         def positive_int(name: str, minimum: int) -> None:
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+            if not is_integer(value, minimum):
                 raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}")
 
         positive_int("n_trees", 1)
@@ -324,9 +324,9 @@ class VMFForest:
         positive_int("min_samples_leaf", 1)
         positive_int("seed", 0)
         j = self.n_jobs
-        if j is not None and (isinstance(j, bool) or not isinstance(j, int) or j < 1):
+        if j is not None and not is_integer(j, 1):
             raise ValueError(f"n_jobs must be None (torch.get_num_threads()) or an int >= 1, got {j!r}")
-        if isinstance(self.n_bins, bool) or not isinstance(self.n_bins, int) or not 2 <= self.n_bins <= 256:
+        if not is_integer(self.n_bins, 2, 256):
             raise ValueError(f"n_bins must be an int in [2, 256], got {self.n_bins!r}")
         if not (isinstance(self.sample_fraction, (int, float)) and 0.0 < self.sample_fraction <= 1.0):
             raise ValueError(f"sample_fraction must be in (0, 1], got {self.sample_fraction!r}")

@@ -11,7 +11,7 @@ from typing import Dict, List, Union
 import torch
 from torch import Tensor
 
-from ._checks import check_finite, check_mask, check_same_size, check_shape, from_batch, to_batch
+from ._checks import check_finite, check_mask, check_same_size, check_shape, from_batch, is_integer, to_batch
 from .lighting import render_sphere, sphere_normals
 
 __all__ = ["angular_error", "NormalMetrics", "normal_metrics", "lmse"]
@@ -194,7 +194,7 @@ def lmse(est_sh: Tensor, gt_sh: Tensor, resolution: int = 64) -> Tensor:
         )
     check_finite(est_b, "est_sh")
     check_finite(gt_b, "gt_sh")
-    if isinstance(resolution, bool) or not isinstance(resolution, int) or resolution < 2:
+    if not is_integer(resolution, 2):
         raise ValueError(f"resolution must be an integer >= 2, got {resolution!r}")
     dtype = torch.promote_types(est_b.dtype, gt_b.dtype)
     est_b, gt_b = est_b.to(dtype), gt_b.to(est_b.device, dtype)

@@ -8,7 +8,7 @@ from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from sfs_torch._checks import is_number
+from sfs_torch._checks import is_integer, is_number
 from sfs_torch.camera import CameraConfig
 from sfs_torch.cli import STAGE_GROUPS, AppConfig, _pipeline_config  # registers the schema and the stage groups
 from sfs_torch.denoise import DenoiseConfig
@@ -202,3 +202,11 @@ class TestLaunchers:
 ])
 def test_a_numeric_option_is_a_finite_real_number(value, minimum, strict, expected):
     assert is_number(value, minimum, strict=strict) is expected
+
+
+@pytest.mark.parametrize("value, minimum, maximum, expected", [
+    (1, 1, 16, True), (16, 1, 16, True), (0, 1, 16, False), (17, 1, 16, False), (-3, -math.inf, math.inf, True),
+    (True, 0, 16, False), (2.0, 0, 16, False), ("2", 0, 16, False), (None, 0, 16, False),
+])
+def test_an_integer_option_is_an_int_in_range(value, minimum, maximum, expected):
+    assert is_integer(value, minimum, maximum) is expected
