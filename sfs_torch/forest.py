@@ -186,7 +186,7 @@ def sample_vmf(vmf: VMF, n_samples: int, generator: Optional[torch.Generator] = 
     check_shape(vmf.mean, "vmf.mean", " ".join(["D"] * (vmf.mean.ndim - 1) + ["3"]))
     if vmf.kappa.shape != vmf.mean.shape[:-1]:
         raise ValueError(f"vmf.kappa must have shape {tuple(vmf.mean.shape[:-1])}, got {tuple(vmf.kappa.shape)}")
-    if not isinstance(n_samples, int) or n_samples < 1:
+    if not is_integer(n_samples, 1):
         raise ValueError(f"n_samples must be a positive int, got {n_samples!r}")
     mean, dtype, device = vmf.mean, vmf.mean.dtype, vmf.mean.device
     shape = (*vmf.kappa.shape, n_samples)

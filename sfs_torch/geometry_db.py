@@ -32,6 +32,7 @@ from safetensors.torch import load_file, save_file
 from torch import Tensor
 from tqdm import tqdm
 
+from ._checks import is_integer
 from .rendering import random_view_rotations, render_normals
 from .shapes import (
     COLLECTIONS,
@@ -141,13 +142,14 @@ def _check_config(cfg: DatabaseConfig) -> None:
     if cfg.collection not in COLLECTIONS:
         raise ValueError(f"collection must be one of {sorted(COLLECTIONS)}, got {cfg.collection!r}")
     for name in ("n_shapes", "n_views", "samples_per_view"):
-        if not (isinstance(getattr(cfg, name), int) and getattr(cfg, name) >= 1):
+        if not is_integer(getattr(cfg, name), 1):
             raise ValueError(f"{name} must be a positive integer, got {getattr(cfg, name)!r}")
-    if not (isinstance(cfg.n_eval_shapes, int) and cfg.n_eval_shapes >= 0):
-        raise ValueError(f"n_eval_shapes must be a non-negative integer, got {cfg.n_eval_shapes!r}")
-    if not (isinstance(cfg.patch_size, int) and cfg.patch_size >= 1 and cfg.patch_size % 2 == 1):
+    for name in ("n_eval_shapes", "seed"):
+        if not is_integer(getattr(cfg, name), 0):
+            raise ValueError(f"{name} must be a non-negative integer, got {getattr(cfg, name)!r}")
+    if not (is_integer(cfg.patch_size, 1) and cfg.patch_size % 2 == 1):
         raise ValueError(f"patch_size must be a positive odd integer, got {cfg.patch_size!r}")
-    if not (isinstance(cfg.resolution, int) and cfg.resolution >= 8):
+    if not is_integer(cfg.resolution, 8):
         raise ValueError(f"resolution must be an integer >= 8, got {cfg.resolution!r}")
     if not 0 < cfg.scale < 1:
         raise ValueError(f"scale must lie in (0, 1) so that the silhouette stays inside the image, got {cfg.scale}")

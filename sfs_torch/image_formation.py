@@ -29,7 +29,7 @@ import torch.nn.functional as F
 import trimesh
 from torch import Tensor
 
-from ._checks import check_shape
+from ._checks import check_shape, is_integer
 from .io import linear_to_srgb, srgb_to_linear
 from .lighting import _BAND_OF_COEFFICIENT, _LAMBERT_OVER_PI, sh_basis_vectors
 
@@ -52,7 +52,7 @@ def sphere_directions(n: int, *, dtype: torch.dtype = torch.float64) -> Tensor:
 
     Deterministic, so a shading integral over them has no per-pixel Monte Carlo noise.
     """
-    if not (isinstance(n, int) and n > 0):
+    if not is_integer(n, 1):
         raise ValueError(f"n must be a positive integer, got {n!r}")
     i = torch.arange(n, dtype=dtype) + 0.5
     z = 1 - 2 * i / n

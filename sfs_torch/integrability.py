@@ -39,7 +39,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ._checks import check_finite, check_mask, check_same_size, check_shape, from_batch, to_batch
+from ._checks import check_finite, check_mask, check_same_size, check_shape, from_batch, is_integer, to_batch
 from .camera import _positive_focal, pixel_grid
 
 __all__ = [
@@ -110,7 +110,7 @@ def check_integrability_config(cfg: IntegrabilityConfig, prefix: str = "") -> No
     if cfg.method not in METHODS:
         raise ValueError(f"{prefix}method must be one of {METHODS}, got {cfg.method!r}")
     for name, minimum in (("max_iter", 1), ("l1_iter", 0), ("conv_iter", 0)):
-        if not getattr(cfg, name) >= minimum:
+        if not is_integer(getattr(cfg, name), minimum):
             raise ValueError(f"{prefix}{name} must be an integer >= {minimum}, got {getattr(cfg, name)!r}")
     for name in ("tol", "l1_delta"):
         if not getattr(cfg, name) > 0:

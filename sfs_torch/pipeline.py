@@ -38,7 +38,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 from torch import Tensor
 
-from ._checks import check_finite, check_mask, check_same_size, is_number, to_batch
+from ._checks import check_finite, check_mask, check_same_size, is_integer, is_number, to_batch
 from .camera import CameraConfig, _positive_focal, centroid_rotation, rotate_normals_to_camera
 from .denoise import DenoiseConfig, check_denoise_config, denoise_image
 from .forest import VMF, ForestConfig, VMFForest, sample_vmf
@@ -337,14 +337,14 @@ def _check_config(cfg: PipelineConfig) -> None:
         _check_principal_point(cfg.camera.principal_point, cfg.camera.focal, warn=False)
     check_refine_config(cfg.refine)
     check_denoise_config(cfg.denoise)
-    if not (isinstance(cfg.refine_rounds, int) and cfg.refine_rounds >= 0):
+    if not is_integer(cfg.refine_rounds, 0):
         raise ValueError(f"refine_rounds must be an integer >= 0, got {cfg.refine_rounds!r}")
     if cfg.normal_rotation not in NORMAL_ROTATIONS:
         raise ValueError(f"normal_rotation must be one of {NORMAL_ROTATIONS}, got {cfg.normal_rotation!r}")
     highlight = cfg.prior_check_highlight
     if highlight is not None and not is_number(highlight, 0, strict=True):
         raise ValueError(f"prior_check_highlight must be a number > 0 or null, got {highlight!r}")
-    if not (isinstance(cfg.conv_samples_per_tree, int) and cfg.conv_samples_per_tree >= 1):
+    if not is_integer(cfg.conv_samples_per_tree, 1):
         raise ValueError(f"conv_samples_per_tree must be an integer >= 1, got {cfg.conv_samples_per_tree!r}")
 
 
@@ -355,7 +355,9 @@ def _check_training_config(cfg: TrainingConfig) -> None:
             raise ValueError(f"training.{name} must be a finite number >= 0, got {value!r}")
     if cfg.cache_forests not in CACHE_POLICIES:
         raise ValueError(f"training.cache_forests must be one of {CACHE_POLICIES}, got {cfg.cache_forests!r}")
-    if not (isinstance(cfg.max_cached_forests, int) and cfg.max_cached_forests >= 1):
+    if not is_integer(cfg.seed, 0):
+        raise ValueError(f"training.seed must be an integer >= 0, got {cfg.seed!r}")
+    if not is_integer(cfg.max_cached_forests, 1):
         raise ValueError(f"training.max_cached_forests must be an integer >= 1, got {cfg.max_cached_forests!r}")
 
 

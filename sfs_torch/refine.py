@@ -47,7 +47,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ._checks import check_finite, check_mask, check_same_size, check_shape
+from ._checks import check_finite, check_mask, check_same_size, check_shape, is_integer
 from .integrability import _dx, _dy, _edge_masks, _unit, field_normals, integrate_normals
 from .lighting import render_sh
 from .natural_lighting import LightingPrior, lighting_prior_energy, load_lighting_prior
@@ -150,10 +150,9 @@ def check_refine_config(cfg: RefineConfig, prefix: str = "refine.") -> None:
         raise ValueError(f"{prefix}when must be one of {WHEN}, got {cfg.when!r}")
     if cfg.model not in MODELS:
         raise ValueError(f"{prefix}model must be one of {MODELS}, got {cfg.model!r}")
-    if cfg.iterations < 0:
-        raise ValueError(f"{prefix}iterations must be >= 0, got {cfg.iterations}")
-    if cfg.levels < 1:
-        raise ValueError(f"{prefix}levels must be >= 1, got {cfg.levels}")
+    for name, minimum in (("iterations", 0), ("levels", 1)):
+        if not is_integer(getattr(cfg, name), minimum):
+            raise ValueError(f"{prefix}{name} must be an integer >= {minimum}, got {getattr(cfg, name)!r}")
     for name in ("delta", "normal_weight", "contour_weight", "smoothness", "lighting_weight", "dark_level"):
         if not getattr(cfg, name) >= 0:
             raise ValueError(f"{prefix}{name} must be >= 0, got {getattr(cfg, name)}")
@@ -228,7 +227,7 @@ def free_lighting_residual(
         raise ValueError(f"highlight must be > 0 or None, got {highlight}")
     if not 0 <= highlight_quantile <= 1:
         raise ValueError(f"highlight_quantile must be in [0, 1], got {highlight_quantile}")
-    if not (isinstance(highlight_rounds, int) and highlight_rounds >= 0):
+    if not is_integer(highlight_rounds, 0):
         raise ValueError(f"highlight_rounds must be an integer >= 0, got {highlight_rounds!r}")
     powers = [(a, b, c) for a in range(degree + 1) for b in range(degree + 1 - a)
               for c in range(degree + 1 - a - b)]

@@ -22,7 +22,7 @@ from typing import Optional, Sequence, Union
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_finite, check_mask, check_same_size, check_shape
+from ._checks import check_finite, check_mask, check_same_size, check_shape, is_integer
 from .camera import _positive_focal, centroid_rotation
 from .lighting import fit_sh, fit_sh_vectors, rotate_sh, sh_basis_vectors
 from .silhouette import SilhouetteConfig, silhouette_distances
@@ -78,7 +78,7 @@ def check_reflectance_map_config(cfg: ReflectanceMapConfig) -> None:
     if cfg.profile not in PROFILES:
         raise ValueError(f"profile must be one of {PROFILES}, got {cfg.profile!r}")
     for name, minimum in (("n_directions", 9), ("min_k", 1), ("max_pixels", 1)):
-        if not getattr(cfg, name) >= minimum:
+        if not is_integer(getattr(cfg, name), minimum):
             raise ValueError(f"{name} must be an integer >= {minimum}, got {getattr(cfg, name)!r}")
     if not 0 < cfg.knn_fraction <= 1:
         raise ValueError(f"knn_fraction must be in (0, 1], got {cfg.knn_fraction!r}")

@@ -30,7 +30,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ._blocks import in_blocks
-from ._checks import check_finite, check_mask, check_same_size, check_shape, from_batch, to_batch
+from ._checks import check_finite, check_mask, check_same_size, check_shape, from_batch, is_integer, to_batch
 
 __all__ = [
     "N_TEXTON_FILTERS",
@@ -102,7 +102,7 @@ def _filter_bank(kernel_size: int, device: torch.device, dtype: torch.dtype) -> 
 
 
 def _check_kernel_size(kernel_size: int) -> None:
-    if not isinstance(kernel_size, int) or kernel_size < 1 or kernel_size % 2 == 0:
+    if not is_integer(kernel_size, 1) or kernel_size % 2 == 0:
         raise ValueError(f"kernel_size must be a positive odd integer, got {kernel_size!r}")
 
 

@@ -210,3 +210,57 @@ def test_a_numeric_option_is_a_finite_real_number(value, minimum, strict, expect
 ])
 def test_an_integer_option_is_an_int_in_range(value, minimum, maximum, expected):
     assert is_integer(value, minimum, maximum) is expected
+
+
+def _checks_of_stage_configs():
+    """Each stage's own check, as its building block runs it without the pipeline (where
+    OmegaConf would already refuse a non-integer for an ``int`` field)."""
+    from sfs_torch.geometry_db import _check_config as check_database_config
+    from sfs_torch.integrability import check_integrability_config
+    from sfs_torch.reflectance_map import check_reflectance_map_config
+    from sfs_torch.refine import check_refine_config
+
+    return {
+        "refine": (RefineConfig, check_refine_config),
+        "integrate": (IntegrabilityConfig, check_integrability_config),
+        "reflectance_map": (ReflectanceMapConfig, check_reflectance_map_config),
+        "database": (DatabaseConfig, check_database_config),
+    }
+
+
+@pytest.mark.parametrize("stage, field", [
+    ("refine", "iterations"), ("refine", "levels"), ("integrate", "max_iter"), ("integrate", "l1_iter"),
+    ("integrate", "conv_iter"), ("reflectance_map", "n_directions"), ("reflectance_map", "min_k"),
+    ("reflectance_map", "max_pixels"), ("database", "n_shapes"), ("database", "n_views"),
+    ("database", "samples_per_view"), ("database", "n_eval_shapes"), ("database", "seed"),
+    ("database", "patch_size"), ("database", "resolution"),
+])
+@pytest.mark.parametrize("bad", [True, 2.5, "3"])
+def test_an_integer_option_of_a_stage_refuses_bools_floats_and_strings(stage, field, bad):
+    config_class, check = _checks_of_stage_configs()[stage]
+    check(config_class())  # the defaults pass
+    with pytest.raises(ValueError, match=rf"{field} must be a.* integer.*got {bad!r}$".replace("(", r"\(")):
+        check(replace(config_class(), **{field: bad}))
+
+
+def test_integer_arguments_of_functions_refuse_bools():
+    import torch
+
+    from sfs_torch.forest import VMF, sample_vmf
+    from sfs_torch.image_formation import sphere_directions
+    from sfs_torch.refine import free_lighting_residual
+    from sfs_torch.texton import texton_features
+
+    with pytest.raises(ValueError, match="n must be a positive integer, got True"):
+        sphere_directions(True)
+    vmf = VMF(mean=torch.tensor([[0.0, 0.0, 1.0]]), kappa=torch.tensor([10.0]))
+    with pytest.raises(ValueError, match="n_samples must be a positive int, got True"):
+        sample_vmf(vmf, True)
+    image, mask = torch.rand(1, 3, 8, 8), torch.zeros(1, 1, 8, 8, dtype=torch.bool)
+    mask[..., 2:6, 2:6] = True
+    with pytest.raises(ValueError, match="kernel_size must be a positive odd integer, got True"):
+        texton_features(image, mask, kernel_size=True)
+    normals = torch.zeros(1, 3, 8, 8)
+    normals[:, 2] = 1.0
+    with pytest.raises(ValueError, match="highlight_rounds must be an integer >= 0, got True"):
+        free_lighting_residual(normals, image, mask, highlight_rounds=True)

@@ -356,7 +356,7 @@ class TestCommandLine:
         (["dataset=folder"], ValueError, "dataset=folder needs dataset.root=<folder>"),
         (["dataset.side=train"], ValueError, "dataset.side must be 'test' or 'validation'"),
         (["dataset.degradation=blur"], ValueError, "dataset.degradation must be one of exact, "),
-        (["classical.iterations=-1"], ValueError, "classical.iterations must be >= 0"),
+        (["classical.iterations=-1"], ValueError, "classical.iterations must be an integer >= 0"),
     ])
     def test_other_bad_options(self, tmp_path, monkeypatch, capsys, args, error, message):
         monkeypatch.chdir(tmp_path)

@@ -399,7 +399,7 @@ class TestPipeline:
 
     @pytest.mark.parametrize("prefix", ["refine.", "classical.", ""])
     def test_option_check_names_the_option_after_its_prefix(self, prefix):
-        with pytest.raises(ValueError, match=rf"^{re.escape(prefix)}levels must be >= 1, got 0$"):
+        with pytest.raises(ValueError, match=rf"^{re.escape(prefix)}levels must be an integer >= 1, got 0$"):
             check_refine_config(RefineConfig(levels=0), prefix=prefix)
         with pytest.raises(ValueError, match=r"^refine\.delta must be > 0"):
             check_refine_config(RefineConfig(delta=0.0))
