@@ -33,7 +33,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from . import io  # noqa: E402
 from ._app import exit_unless_writable, output_folder, parse_device  # noqa: E402
-from ._checks import is_integer  # noqa: E402
+from ._checks import is_integer, is_number  # noqa: E402
 from .denoise import DenoiseConfig  # noqa: E402
 from .figures import confidence_display_max, summary_figure  # noqa: E402
 from .forest import ForestConfig  # noqa: E402
@@ -118,14 +118,31 @@ def _pipeline_config(cfg: DictConfig) -> PipelineConfig:
     return resolve_config(OmegaConf.create({k: v for k, v in OmegaConf.to_container(cfg, resolve=True).items() if k in keep}))
 
 
+def _check_demo_config(demo: DictConfig) -> None:
+    """``ValueError`` naming the first bad ``demo.*`` option; cheap, so it runs before the
+    meshes are fetched (the shape index is checked against the shapes once they are known)."""
+    if not is_integer(demo.shape, 0):
+        raise ValueError(f"demo.shape must be an integer >= 0, got {demo.shape!r}")
+    names = sorted(natural_lightings())
+    if demo.lighting not in names:
+        raise ValueError(f"demo.lighting must be one of {names}, got {demo.lighting!r}")
+    # a non-positive albedo renders a black image, which the pipeline would fit without complaint
+    if not is_number(demo.albedo, 0, strict=True):
+        raise ValueError(f"demo.albedo must be a number > 0, got {demo.albedo!r}")
+    if not is_integer(demo.resolution, 8):
+        raise ValueError(f"demo.resolution must be an integer >= 8, got {demo.resolution!r}")
+    if not is_integer(demo.view_seed):
+        raise ValueError(f"demo.view_seed must be an integer, got {demo.view_seed!r}")
+    if not is_number(demo.noise_sigma, 0):
+        raise ValueError(f"demo.noise_sigma must be a number >= 0, got {demo.noise_sigma!r}")
+
+
 def _demo_inputs(cfg: DictConfig, device: torch.device) -> Dict[str, Any]:
     """Render the demo scene: an evaluation shape under a natural lighting."""
     shapes = evaluation_shapes(OmegaConf.to_object(cfg.database))
     if not 0 <= cfg.demo.shape < len(shapes):
         raise ValueError(f"demo.shape must be in [0, {len(shapes) - 1}], got {cfg.demo.shape}")
     lights = natural_lightings(cfg.demo.albedo)
-    if cfg.demo.lighting not in lights:
-        raise ValueError(f"demo.lighting must be one of {sorted(lights)}, got {cfg.demo.lighting!r}")
     shape = shapes[cfg.demo.shape]
     generator = torch.Generator().manual_seed(cfg.demo.view_seed)
     view = render_normals(shape.mesh, random_view_rotations(1, generator)[0], cfg.demo.resolution)
@@ -264,6 +281,8 @@ def run(cfg: DictConfig) -> Dict[str, float]:
     pipeline_cfg = _pipeline_config(cfg)
     device = _device(cfg.device)
     mesh_formats = _mesh_formats(cfg.mesh_formats)
+    if cfg.image is None:
+        _check_demo_config(cfg.demo)
     out = _output_folder(cfg)
     novel_view = _novel_view(cfg, pipeline_cfg)
     true_normals = true_lighting = None

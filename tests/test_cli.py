@@ -215,6 +215,21 @@ class TestConfigCheckedAtEntry:
         assert message in str(info.value)
         assert not (tmp_path / "r").exists()
 
+    @pytest.mark.parametrize("override, message", [
+        ("demo.albedo=-1", "demo.albedo must be a number > 0, got -1"),  # a black image, fitted silently before
+        ("demo.albedo=0", "demo.albedo must be a number > 0, got 0"),
+        ("demo.noise_sigma=-0.1", "demo.noise_sigma must be a number >= 0, got -0.1"),
+        ("demo.resolution=4", "demo.resolution must be an integer >= 8, got 4"),
+        ("demo.shape=-1", "demo.shape must be an integer >= 0, got -1"),
+        ("demo.lighting=sun", "demo.lighting must be one of ['campus_sunset', "),
+    ])
+    def test_demo_options_before_the_meshes(self, tmp_path, no_work, override, message):
+        cfg = compose_batch([override, f"out={tmp_path / 'r'}"])
+        with pytest.raises(ValueError) as info:
+            no_work.run(cfg)
+        assert message in str(info.value)
+        assert not (tmp_path / "r").exists()
+
     def test_one_clear_line(self, tmp_path):
         result = run_cli([*TINY, "normal_rotation=pxl", "out=x"], tmp_path)
         assert result.returncode == 2
