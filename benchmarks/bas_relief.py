@@ -81,6 +81,8 @@ def main() -> None:
                         help="also try the tilts (mu, nu) in {-T, 0, T}^2 as refined hypotheses (default T: 0.5)")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "bas_relief.json")
     args = parser.parse_args()
+    if args.side == "test" and args.exposure is not None:
+        parser.error("--exposure is for the validation side: the test side's R&H probes keep their own exposure")
     if args.hypotheses is not None and not args.hypotheses > 0:
         parser.error(f"--hypotheses must be positive, got {args.hypotheses}")
     shapes = scene_shapes(args.shapes, args.side, sphere=False)

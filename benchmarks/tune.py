@@ -76,6 +76,9 @@ def main() -> None:
     parser.add_argument("--ablation", action="store_true", help="run ABLATION instead of --variants")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "tune.json")
     args = parser.parse_args()
+    if args.side == "test" and (args.exposure is not None or args.light_seed != 0):
+        parser.error("--exposure and --light-seed are for the validation side: the test side's R&H probes keep "
+                     "their own orientation and exposure")
     variants = [overrides for _, overrides in ABLATION] if args.ablation else [json.loads(v) for v in args.variants]
     labels = [label for label, _ in ABLATION] if args.ablation else [json.dumps(v) for v in variants]
     shapes = scene_shapes(args.shapes, args.side, sphere=not args.no_sphere)
