@@ -720,7 +720,8 @@ def _prior_explains_better(image: Tensor, mask: Tensor, normals: Tensor, among: 
     for the refit, that bend to fit it. Only for images with at most
     ``FREE_FIT_MAX_CLIPPED`` of the object's pixels clipped at 0 or 1: the shading is
     fitted to the others and unbounded on them. ``highlight`` is ``free_lighting_residual``'s:
-    a surface bent to explain a specular highlight gains nothing there.
+    a surface bent to reproduce a specular highlight gains at most the threshold's penalty
+    on each of its pixels.
     """
     clipped = (mask & ~_unclipped_pixels(image, mask)).flatten(1).sum(1)
     items = (among & (clipped <= FREE_FIT_MAX_CLIPPED * mask.flatten(1).sum(1))).nonzero()[:, 0]

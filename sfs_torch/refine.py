@@ -210,7 +210,9 @@ def free_lighting_residual(
     shading by more than a threshold in any channel count as specular highlights, which no
     smooth diffuse shading of the true normals explains: the shading is refitted without
     them (``highlight_rounds`` times), and each costs the penalty of a residual at the
-    threshold, so normals bent to explain a highlight gain nothing there. The threshold is
+    threshold: a field that leaves a highlight unexplained pays at most that there, so
+    normals bent to reproduce it gain at most that, where the plain score would give them
+    the whole highlight's residual. The threshold is
     ``highlight`` or, where larger, the ``highlight_quantile`` quantile of how far the other
     fitted pixels fall *below* the shading (their largest deficit over the channels): noise,
     8-bit steps and a wrong field's shape error leave residuals of both signs, a highlight

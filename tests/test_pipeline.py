@@ -275,22 +275,36 @@ class TestKeepPrior:
         of_depth = depth_to_normals(kept.depth[None], mask[None])[0]
         assert float(normal_metrics(of_depth[None], coarse[None], interior[None]).median[0]) < 1.0
 
-    def test_a_glossy_sphere_returns_to_its_prior_after_the_refinement(self, monkeypatch):
+    def test_a_glossy_sphere_is_checked_with_the_highlight_rule_after_the_refinement(self, monkeypatch):
         # a specular highlight: the refined surface bends to explain it, so under a plain
-        # residual it fits better than Eq. 10's exact sphere; the check after the refinement
-        # prices highlights at a fixed cost (prior_check_highlight)
+        # residual it fits better than Eq. 10's exact sphere and is returned. With the rule
+        # (prior_check_highlight) the check gets the option, and where it says so the call
+        # returns the prior. What the rule decides is tested on controlled fields in
+        # test_refine: on this 64 px sphere and the tests' small forest the decision is a
+        # coin toss (measured: the prior's score 0.01383 against the refined surface's
+        # 0.01384 on an Intel Xeon, the refined surface lower on an AMD EPYC), see
+        # docs/robustness.md
         normals, mask = sphere()
         sh = natural_lightings(0.8)["uffizi_gallery"]
         image, _ = with_highlight(render_sh(normals[None], sh[None])[0] * mask, normals, mask, sh)
         # the check before the refinement off, so the forest's surface is refined and checked
         monkeypatch.setattr(pipeline, "_better_prior", lambda *a, **k: None)
-        errors = {}
-        for highlight in (PipelineConfig.prior_check_highlight, None):
-            est = sfs_torch.estimate(image, mask, config=dict(TINY, prior_check_highlight=highlight), progress=False)
-            errors[highlight] = float(normal_metrics(est.normals[None], normals[None], mask[None]).median[0])
-        coarse = float(normal_metrics(coarse_normals(mask[None]), normals[None], mask[None]).median[0])
-        assert errors[PipelineConfig.prior_check_highlight] == pytest.approx(coarse, abs=1e-3)
-        assert errors[None] > coarse + 2.0
+        coarse = coarse_normals(mask[None])[0]
+        coarse_error = float(normal_metrics(coarse[None], normals[None], mask[None]).median[0])
+        plain = sfs_torch.estimate(image, mask, config=dict(TINY, prior_check_highlight=None), progress=False)
+        assert float(normal_metrics(plain.normals[None], normals[None], mask[None]).median[0]) > coarse_error + 2.0
+
+        highlights = []
+
+        def prior_wins(*args):
+            highlights.append(args[-1])
+            return torch.ones_like(args[3])
+
+        monkeypatch.setattr(pipeline, "_prior_explains_better", prior_wins)
+        est = sfs_torch.estimate(image, mask, config=TINY, progress=False)
+        assert highlights == [PipelineConfig.prior_check_highlight]
+        assert torch.allclose(est.normals, coarse, atol=1e-6)
+        assert torch.allclose(est.lighting, refit_lighting(image[None], mask[None], coarse[None])[0], atol=1e-5)
 
     def test_a_batch_refines_only_the_items_without_a_kept_prior(self, scene, monkeypatch):
         normals, mask, sh, image = scene
