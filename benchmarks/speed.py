@@ -29,7 +29,9 @@ import tempfile
 import time
 from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from sfs_torch._openmp import short_openmp_waits  # noqa: E402
+
+short_openmp_waits()  # as the sfs-torch command does
 
 ROOT = Path(__file__).resolve().parents[1]
 

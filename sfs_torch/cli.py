@@ -20,10 +20,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, Iterator, List, Optional, Tuple
 
-# Idle OpenMP threads spin by default; on a small shared CPU that made the forest's many
-# short parallel loops 20-50x slower (docs/forest.md). The command owns its process, so it
-# chooses a passive policy (unless the user chose one) before torch starts its threads.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from ._openmp import short_openmp_waits  # noqa: E402
+
+# the command owns its process, so it chooses how idle OpenMP threads wait before torch starts
+short_openmp_waits()
 
 import hydra  # noqa: E402
 import numpy as np  # noqa: E402

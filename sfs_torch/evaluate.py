@@ -36,8 +36,9 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Set, Tuple
 
-# as sfs-torch does (sfs_torch.cli, docs/forest.md): idle OpenMP threads must not spin
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from ._openmp import short_openmp_waits  # noqa: E402
+
+short_openmp_waits()  # as sfs-torch does, before torch starts
 
 import hydra  # noqa: E402
 import torch  # noqa: E402

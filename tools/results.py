@@ -37,7 +37,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as sfs-torch-eval does
+from sfs_torch._openmp import short_openmp_waits  # noqa: E402
+
+short_openmp_waits()  # as sfs-torch-eval does
 
 ROOT = Path(__file__).resolve().parents[1]
 log = logging.getLogger("sfs_torch.results")

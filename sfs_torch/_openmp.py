@@ -1,0 +1,20 @@
+"""How idle OpenMP threads wait, for the processes that the package's commands own."""
+import os
+
+__all__ = ["SPIN_COUNT", "short_openmp_waits"]
+
+# libgomp's spins before an idle thread sleeps; chosen with benchmarks/openmp_waits.py
+SPIN_COUNT = 3000
+
+
+def short_openmp_waits() -> None:
+    """Let idle OpenMP threads spin briefly and then sleep (``GOMP_SPINCOUNT``), unless
+    the user chose (``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` already set).
+
+    Call it before torch starts its threads. Spinning until told otherwise (libgomp's
+    default) starves other processes' work on a loaded machine; sleeping at once
+    (``OMP_WAIT_POLICY=PASSIVE``) makes every short parallel op of the photometric
+    refinement wait for a wake-up. docs/pipeline.md has the measurements.
+    """
+    if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
+        os.environ["GOMP_SPINCOUNT"] = str(SPIN_COUNT)
