@@ -8,13 +8,16 @@ SPIN_COUNT = 3000
 
 
 def short_openmp_waits() -> None:
-    """Let idle OpenMP threads spin briefly and then sleep (``GOMP_SPINCOUNT``), unless
-    the user chose (``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` already set).
+    """Let idle OpenMP threads spin briefly and then sleep, unless the user chose
+    (``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` already set).
 
-    Call it before torch starts its threads. Spinning until told otherwise (libgomp's
-    default) starves other processes' work on a loaded machine; sleeping at once
+    Call it before torch starts its threads. Spinning for long (libgomp's default)
+    starves other processes' work on a loaded machine; sleeping at once
     (``OMP_WAIT_POLICY=PASSIVE``) makes every short parallel op of the photometric
-    refinement wait for a wake-up. docs/pipeline.md has the measurements.
+    refinement wait for a wake-up. Sets both: libgomp (torch's Linux wheels) takes
+    ``GOMP_SPINCOUNT`` over the passive policy's zero spins, and other OpenMP runtimes,
+    which ignore it, keep the passive policy. docs/pipeline.md has the measurements.
     """
     if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
+        os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
         os.environ["GOMP_SPINCOUNT"] = str(SPIN_COUNT)
