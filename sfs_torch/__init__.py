@@ -20,8 +20,10 @@ modules follow the paper's pipeline (Fig. 2):
 """
 from importlib import import_module
 
+from ._openmp import short_openmp_waits
+
 __version__ = "0.1.0"
-__all__ = ["estimate", "Estimate", "PipelineConfig", "ShapeFromShading", "__version__"]
+__all__ = ["estimate", "Estimate", "PipelineConfig", "ShapeFromShading", "short_openmp_waits", "__version__"]
 
 
 def __getattr__(name: str):
