@@ -20,6 +20,7 @@ import os
 import statistics
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from _results import write_results
@@ -30,8 +31,6 @@ WAIT_VARIABLES = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
 
 def _worker(shapes: int) -> None:
     """Time one estimated-lighting call per test-side image; one JSON line each on stdout."""
-    import time
-
     import sfs_torch
     from sfs_torch.datasets import evaluation_lightings, scene_shapes, synthetic_scenes
 

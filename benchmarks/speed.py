@@ -29,7 +29,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from sfs_torch._openmp import short_openmp_waits  # noqa: E402
+from sfs_torch import short_openmp_waits
 
 short_openmp_waits()  # as the sfs-torch command does
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, Iterator, List, Optional, Tuple
 
-from ._openmp import short_openmp_waits  # noqa: E402
+from ._openmp import short_openmp_waits
 
 # the command owns its process, so it chooses how idle OpenMP threads wait before torch starts
 short_openmp_waits()

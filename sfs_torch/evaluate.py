@@ -36,7 +36,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Set, Tuple
 
-from ._openmp import short_openmp_waits  # noqa: E402
+from ._openmp import short_openmp_waits
 
 short_openmp_waits()  # as sfs-torch does, before torch starts
 

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
-from sfs_torch._openmp import short_openmp_waits  # noqa: E402
+from sfs_torch import short_openmp_waits
 
 short_openmp_waits()  # as sfs-torch-eval does
 
