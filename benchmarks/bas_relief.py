@@ -18,11 +18,16 @@ tried as hypotheses produced alike, with no ground truth: the default's normals 
 the lighting refitted to them (``refit_lighting``) and the joint refinement run from them
 (with the tilted normals as its prior). The tilt whose refinement ends at the lowest loss
 is picked, and so is the one with the lowest photometric residual. That measures whether
-the refinement's own energy can tell the tilt.
+the refinement's own energy can tell the tilt. With ``--lighting-prior W ...`` every
+transform of the grid gets the lighting refitted to its normals and is scored by its
+photometric residual (relative to the untransformed normals') plus ``W`` times that
+lighting's natural-lighting prior energy; the best-scored transform is picked, per ``W``.
+That measures whether the lighting prior can tell the transform.
 
     python benchmarks/bas_relief.py --shapes 7 --lights 3 --exposure 0.2
     python benchmarks/bas_relief.py --shapes 7 --lights 3 --exposure 0.2 --hypotheses
     python benchmarks/bas_relief.py --side test --shapes 6 --lights 5 --degradation all
+    python benchmarks/bas_relief.py --shapes 7 --lights 3 --exposure 0.2 --lighting-prior 0.1 0.3 1 3
 """
 from __future__ import annotations
 
@@ -48,6 +53,7 @@ from sfs_torch.datasets import (  # noqa: E402
 )
 from sfs_torch.geometry_db import load_database  # noqa: E402
 from sfs_torch.metrics import normal_metrics  # noqa: E402
+from sfs_torch.natural_lighting import lighting_prior_energy, load_lighting_prior  # noqa: E402
 from sfs_torch.pipeline import resolve_config  # noqa: E402
 from sfs_torch.reflectance_map import refit_lighting  # noqa: E402
 from sfs_torch.refine import photometric_residual, refine_shape_and_lighting  # noqa: E402
@@ -79,12 +85,16 @@ def main() -> None:
     parser.add_argument("--degradation", default="exact", choices=list(DEGRADATIONS))
     parser.add_argument("--hypotheses", type=float, nargs="?", const=0.5, default=None, metavar="T",
                         help="also try the tilts (mu, nu) in {-T, 0, T}^2 as refined hypotheses (default T: 0.5)")
+    parser.add_argument("--lighting-prior", type=float, nargs="+", default=None, metavar="W",
+                        help="also pick the transform by photometric residual + W x lighting prior energy, per W")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "bas_relief.json")
     args = parser.parse_args()
     if args.side == "test" and args.exposure is not None:
         parser.error("--exposure is for the validation side: the test side's R&H probes keep their own exposure")
     if args.hypotheses is not None and not args.hypotheses > 0:
         parser.error(f"--hypotheses must be positive, got {args.hypotheses}")
+    if args.lighting_prior is not None and not all(w >= 0 for w in args.lighting_prior):
+        parser.error(f"--lighting-prior weights must be >= 0, got {args.lighting_prior}")
     shapes = scene_shapes(args.shapes, args.side, sphere=False)
     n = args.first_light + args.lights
     lightings = (validation_lightings(n, exposure=args.exposure) if args.side == "validation"
@@ -92,6 +102,7 @@ def main() -> None:
     cfg = resolve_config({"training": {"cache_forests": "never"}})
     database = load_database(cfg.database, progress=False)
     grid = list(itertools.product(SCALES, TILTS, TILTS))
+    prior = load_lighting_prior()
     rows = []
     for scene in synthetic_scenes(shapes, lightings, resolution=args.resolution,
                                   formation=DEGRADATIONS[args.degradation]):
@@ -124,15 +135,29 @@ def main() -> None:
                 picked = min(row["hypotheses"], key=lambda h: h[key])
                 row[f"by_{key}"], row[f"by_{key}_tilt"] = picked["error"], picked["tilt"]
             line += f" | by loss {row['by_loss']:6.2f} at {row['by_loss_tilt']}"
+        if args.lighting_prior is not None:
+            normals = torch.cat([bas_relief(est.normals, *t) * mask for t in grid])
+            images, masks = image.expand(len(grid), -1, -1, -1), mask.expand(len(grid), -1, -1, -1)
+            lightings_t = refit_lighting(images, masks, normals, valid=cfg.valid_refit).to(image.dtype)
+            photometric = photometric_residual(normals, lightings_t, images, masks)
+            photometric = photometric / photometric[grid.index((1.0, 0.0, 0.0))]
+            energy = lighting_prior_energy(lightings_t, prior)
+            for w in args.lighting_prior:
+                picked = grid[int((photometric + w * energy).argmin())]
+                row[f"by_prior_{w:g}"], row[f"by_prior_{w:g}_transform"] = errors[picked], picked
+                line += f" | prior {w:g}: {errors[picked]:6.2f}"
         rows.append(row)
         print(line + f"  ({time.perf_counter() - start:.0f} s)", flush=True)
 
     columns = ["prior", "default", "scale", "tilt", "both"]
     if args.hypotheses is not None:
         columns += ["by_loss", "by_photometric"]
+    for w in args.lighting_prior or ():
+        columns.append(f"by_prior_{w:g}")
     labels = {"prior": "silhouette prior", "default": "the default call", "scale": "oracle scale",
               "tilt": "oracle tilt", "both": "oracle scale and tilt", "by_loss": "tilt by refinement loss",
               "by_photometric": "tilt by photometric residual"}
+    labels.update({f"by_prior_{w:g}": f"by photometric + {w:g} x prior" for w in args.lighting_prior or ()})
     summary = {c: {"median": statistics.median(r[c] for r in rows), "mean": statistics.mean(r[c] for r in rows)}
                for c in columns}
     print(f"\n{len(rows)} images ({args.side} side, {args.degradation}), lighting estimated; "
