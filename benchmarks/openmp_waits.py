@@ -23,10 +23,12 @@ import sys
 import time
 from pathlib import Path
 
+from sfs_torch._openmp import SPIN_COUNT, WAIT_VARIABLES
+
 from _results import write_results
 
-SETTINGS = ["OMP_WAIT_POLICY=PASSIVE", "GOMP_SPINCOUNT=3000", "unset"]
-WAIT_VARIABLES = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
+# the passive policy alone, the package's spin count (what its commands set), libgomp's default
+SETTINGS = ["OMP_WAIT_POLICY=PASSIVE", f"GOMP_SPINCOUNT={SPIN_COUNT}", "unset"]
 
 
 def _worker(shapes: int) -> None:

@@ -1,10 +1,12 @@
 """How idle OpenMP threads wait, for the processes that the package's commands own."""
 import os
 
-__all__ = ["SPIN_COUNT", "short_openmp_waits"]
+__all__ = ["SPIN_COUNT", "WAIT_VARIABLES", "short_openmp_waits"]
 
 # libgomp's spins before an idle thread sleeps; chosen with benchmarks/openmp_waits.py
 SPIN_COUNT = 3000
+# the variables that say how idle threads wait; a user who set either has chosen
+WAIT_VARIABLES = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
 
 
 def short_openmp_waits() -> None:
@@ -18,6 +20,6 @@ def short_openmp_waits() -> None:
     ``GOMP_SPINCOUNT`` over the passive policy's zero spins, and other OpenMP runtimes,
     which ignore it, keep the passive policy. docs/pipeline.md has the measurements.
     """
-    if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
+    if not any(name in os.environ for name in WAIT_VARIABLES):
         os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
         os.environ["GOMP_SPINCOUNT"] = str(SPIN_COUNT)
