@@ -47,9 +47,11 @@ ABLATION = [
     ("+ constrained refit round, jitter", {"keep_prior": False, "training": {"noise_from_image": False},
                                            "refine": {"when": "never"}}),
     ("+ prior check, image-noise matching", {"refine": {"when": "never"}}),
-    ("+ joint refinement of surface and lighting", {"refine": {"lighting_weight": 0.0}, "final_round": False}),
-    ("+ natural-lighting prior", {"final_round": False}),
-    ("+ final unjittered round (the default)", {}),
+    ("+ joint refinement of surface and lighting", {"refine": {"lighting_weight": 0.0}, "final_round": False,
+                                                    "relief_scale": 1.0}),
+    ("+ natural-lighting prior", {"final_round": False, "relief_scale": 1.0}),
+    ("+ final unjittered round", {"relief_scale": 1.0}),
+    ("+ relief scale (the default)", {}),
     ("the default, true lighting given", {"lighting": "known"}),
 ]
 

@@ -19,7 +19,8 @@
    fitted to the image, per pixel under a given lighting, and an estimated lighting
    refined jointly with an integrable surface (``refine.when``, default ``"always"``),
    then once more from an unjittered forest trained for the refined lighting
-   (``final_round``);
+   (``final_round``), and an estimated orthographic surface deepened by a fixed factor
+   (``relief_scale``, not in the paper);
 7. optional integrability refinement (:mod:`sfs_torch.integrability`).
 """
 from __future__ import annotations
@@ -34,6 +35,7 @@ from typing import Any, Dict, Iterator, Optional, Sequence, Union
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 from torch import Tensor
@@ -173,6 +175,13 @@ class PipelineConfig:
             brightness/colour jitter, and the joint refinement again from that forest's
             normals, whose surface, lighting and confidence are returned (one more forest
             and refinement; measured in docs/pipeline.md).
+        relief_scale: with an estimated lighting and an orthographic camera, after the
+            joint refinement (and ``final_round``): the refined surface's depth times this,
+            a bas-relief transform (its normals ``(s n_x, s n_y, n_z)`` normalised, the
+            lighting refitted to them), which the image's shading cannot tell from the
+            unscaled surface. It corrects the estimate's measured flattening, chosen on
+            the tuning side (docs/pipeline.md); 1 leaves the surface as refined. Images
+            the prior check returns to the silhouette prior keep Eq. 10's normals.
         normal_rotation: how normals predicted in an orthographic frame are turned into
             a perspective camera's frame: ``"centroid"``, the one rotation of the object's
             centroid (the frame its training lighting is expressed in), or ``"pixel"``, each
@@ -198,6 +207,7 @@ class PipelineConfig:
     keep_prior: bool = True
     prior_check_highlight: Optional[float] = 0.1
     final_round: bool = True
+    relief_scale: float = 1.1
     normal_rotation: str = "centroid"
     conv_samples_per_tree: int = 1
 
@@ -341,6 +351,8 @@ def _check_config(cfg: PipelineConfig) -> None:
         raise ValueError(f"refine_rounds must be an integer >= 0, got {cfg.refine_rounds!r}")
     if cfg.normal_rotation not in NORMAL_ROTATIONS:
         raise ValueError(f"normal_rotation must be one of {NORMAL_ROTATIONS}, got {cfg.normal_rotation!r}")
+    if not is_number(cfg.relief_scale, 0, strict=True):
+        raise ValueError(f"relief_scale must be a number > 0, got {cfg.relief_scale!r}")
     highlight = cfg.prior_check_highlight
     if highlight is not None and not is_number(highlight, 0, strict=True):
         raise ValueError(f"prior_check_highlight must be a number > 0 or null, got {highlight!r}")
@@ -638,6 +650,9 @@ def estimate(
                     last = _final_round(image_b[b : b + 1], mask_b[b : b + 1], normals[b : b + 1], rows, db, image_cfg,
                                         timer, centroid, focal, principal_point)
                     depth[b], normals[b], sh[b], confidence[b] = (x[0] for x in last)
+        if cfg.relief_scale != 1 and not given and focal is None and depth is not None:
+            with timer("relief scale"):
+                depth, normals, sh = _scaled_relief(image_b, mask_b, depth, normals, sh, ~skip, cfg)
         if cfg.keep_prior and not given and depth is not None:
             with timer("prior check after refinement"):
                 back = _prior_explains_better(image_b, mask_b, normals, ~skip, focal, principal_point, cfg.silhouette,
@@ -702,6 +717,22 @@ def _final_round(image: Tensor, mask: Tensor, normals: Tensor, rows: Tensor, db:
                                  torch.zeros(1, dtype=torch.bool, device=image.device), cfg, False, focal,
                                  principal_point)
     return depth, normals, sh, found.confidence
+
+
+def _scaled_relief(image: Tensor, mask: Tensor, depth: Tensor, normals: Tensor, sh: Tensor, among: Tensor,
+                   cfg: PipelineConfig) -> tuple:
+    """``(depth, normals, lighting)`` with the orthographic surfaces of the images in
+    ``among`` (B,) bool deepened by ``cfg.relief_scale`` and their lighting refitted."""
+    items = among.nonzero()[:, 0]
+    if len(items) == 0:
+        return depth, normals, sh
+    depth, normals, sh = depth.clone(), normals.clone(), sh.clone()
+    scale = torch.tensor([cfg.relief_scale, cfg.relief_scale, 1.0], dtype=normals.dtype, device=normals.device)
+    m = mask[items]
+    normals[items] = F.normalize(normals[items] * scale[:, None, None], dim=1) * m
+    depth[items] = depth[items] * cfg.relief_scale
+    sh[items] = refit_lighting(image[items], m, normals[items], valid=cfg.valid_refit).to(sh.dtype)
+    return depth, normals, sh
 
 
 FREE_FIT_MAX_CLIPPED = 0.25

@@ -385,7 +385,7 @@ class TestFinalRound:
 
         monkeypatch.setattr(pipeline, "_forest_rounds", recording_rounds)
         monkeypatch.setattr(pipeline, "refine_shape_and_lighting", recording_refine)
-        est = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False), progress=False)
+        est = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False, relief_scale=1.0), progress=False)
         assert len(rounds) == 2 and len(refinements) == 2
         (_, jitter, _, refits), (last_sh, *unjittered) = rounds
         assert jitter > 0 and refits == 1  # the call's own forests
@@ -396,9 +396,38 @@ class TestFinalRound:
         torch.testing.assert_close(est.depth, refinements[1].depth[0])
         assert "final round" in est.timings
         rounds.clear(), refinements.clear()
-        off = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False, final_round=False), progress=False)
+        off = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False, final_round=False, relief_scale=1.0),
+                                 progress=False)
         assert len(rounds) == 1 and len(refinements) == 1
         torch.testing.assert_close(off.normals, refinements[0].normals[0])
+
+
+class TestReliefScale:
+    def test_an_estimated_orthographic_surface_is_deepened_and_its_lighting_refitted(self, scene):
+        _, mask, _, image = scene
+        config = dict(TINY, keep_prior=False)
+        flat = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.0), progress=False)
+        deep = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.5), progress=False)
+        torch.testing.assert_close(deep.depth, 1.5 * flat.depth)
+        n = flat.normals
+        expected = torch.nn.functional.normalize(torch.stack([1.5 * n[0], 1.5 * n[1], n[2]]), dim=0) * mask
+        torch.testing.assert_close(deep.normals, expected)
+        torch.testing.assert_close(deep.lighting, refit_lighting(image[None], mask[None], expected[None])[0])
+        # the surface of a scaled depth has the scaled normals: the outputs stay one surface
+        interior = (mask & ~rim_pixels(mask[None])[0])[None]
+        from_depth = depth_to_normals(deep.depth[None], mask[None])
+        assert float(normal_metrics(from_depth, deep.normals[None], interior).median[0]) < 1.0
+        assert "relief scale" in deep.timings and "relief scale" not in flat.timings
+
+    @pytest.mark.parametrize("case", ["known lighting", "perspective", "kept prior"])
+    def test_left_alone(self, scene, case):
+        _, mask, sh, image = scene
+        kwargs = {"known lighting": {"lighting": sh}, "perspective": {"focal": 300.0}, "kept prior": {}}[case]
+        # the sphere's silhouette prior is kept (TestKeepPrior), so nothing is deepened
+        config = dict(TINY, keep_prior=case == "kept prior")
+        flat = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.0), progress=False, **kwargs)
+        deep = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.5), progress=False, **kwargs)
+        assert torch.equal(deep.normals, flat.normals) and torch.equal(deep.lighting, flat.lighting)
 
 
 class TestForestCache:
@@ -491,6 +520,8 @@ BAD_CONFIGS = [
     ({"conv_samples_per_tree": 0}, r"^conv_samples_per_tree must be an integer >= 1"),
     ({"prior_check_highlight": 0.0}, r"^prior_check_highlight must be a number > 0 or null, got 0.0"),
     ({"prior_check_highlight": float("nan")}, r"^prior_check_highlight must be a number > 0 or null, got nan"),
+    ({"relief_scale": 0.0}, r"^relief_scale must be a number > 0, got 0.0"),
+    ({"relief_scale": "deep"}, r"relief_scale"),
     ({"integrate": {"method": "l3"}}, r"^integrate.method must be one of .*got 'l3'"),
     ({"integrate": {"tol": 0.0}}, r"^integrate.tol must be > 0"),
     # the solver's options are checked with integrate.method="none" (the default) too
