@@ -178,8 +178,8 @@ class PipelineConfig:
         relief_scale: with an estimated lighting and an orthographic camera, after the
             joint refinement (and ``final_round``): the refined surface's depth times this,
             a bas-relief transform (its normals ``(s n_x, s n_y, n_z)`` normalised, the
-            lighting refitted to them), which the image's shading cannot tell from the
-            unscaled surface. It corrects the estimate's measured flattening, chosen on
+            lighting refitted to them), which changes the image's shading only through an
+            albedo factor. It corrects the estimate's measured flattening, chosen on
             the tuning side (docs/pipeline.md); 1 leaves the surface as refined. Images
             the prior check returns to the silhouette prior keep Eq. 10's normals.
         normal_rotation: how normals predicted in an orthographic frame are turned into
