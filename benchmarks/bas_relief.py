@@ -11,7 +11,8 @@ closest to the truth, over three families:
 - **tilt**: ``mu, nu`` alone (``lam = 1``), a plane added to the depth;
 - **both**: every ``(lam, mu, nu)`` of the grids.
 
-The transformed normals are ``normalize(lam n_x - mu n_z, lam n_y - nu n_z, n_z)``. These
+The transformed normals are ``normalize(lam n_x - mu n_z, lam n_y - nu n_z, n_z)``
+(``sfs_torch.integrability.bas_relief_normals``, as the default's ``relief_scale``). These
 are oracles (they use the true normals): they say how much error a cue that picked the
 transform could remove, not that any cue can. The script also scores every depth scale of
 ``FINE_SCALES`` applied to all images alike, with no oracle (how the default's
@@ -43,7 +44,6 @@ from pathlib import Path
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import torch  # noqa: E402
-import torch.nn.functional as F  # noqa: E402
 
 import sfs_torch  # noqa: E402
 from sfs_torch.datasets import (  # noqa: E402
@@ -54,6 +54,7 @@ from sfs_torch.datasets import (  # noqa: E402
     validation_lightings,
 )
 from sfs_torch.geometry_db import load_database  # noqa: E402
+from sfs_torch.integrability import bas_relief_normals  # noqa: E402
 from sfs_torch.metrics import normal_metrics  # noqa: E402
 from sfs_torch.natural_lighting import lighting_prior_energy, load_lighting_prior  # noqa: E402
 from sfs_torch.pipeline import resolve_config  # noqa: E402
@@ -69,12 +70,6 @@ FINE_SCALES = (0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2, 1.3, 1.4, 1.6, 1.8, 2.0)
 TILTS = (-1.0, -0.6, -0.3, 0.0, 0.3, 0.6, 1.0)
 # which (scale, tilt_x, tilt_y) of the grid each oracle may choose
 FAMILIES = {"scale": lambda t: t[1] == t[2] == 0, "tilt": lambda t: t[0] == 1, "both": lambda t: True}
-
-
-def bas_relief(normals: torch.Tensor, scale: float, tilt_x: float, tilt_y: float) -> torch.Tensor:
-    """The normals of the surface ``scale * z + tilt_x * x + tilt_y * y``, (B, 3, H, W) -> (B, 3, H, W)."""
-    x, y, z = normals.unbind(1)
-    return F.normalize(torch.stack([scale * x - tilt_x * z, scale * y - tilt_y * z, z], 1), dim=1)
 
 
 def main() -> None:
@@ -117,9 +112,9 @@ def main() -> None:
             return float(normal_metrics(normals * mask, scene.normals, mask).median[0])
 
         est = sfs_torch.estimate(image, mask, config=cfg, progress=False, database=database)
-        errors = {t: error(bas_relief(est.normals, *t)) for t in grid}
+        errors = {t: error(bas_relief_normals(est.normals, *t)) for t in grid}
         row = {"case": scene.name, "prior": error(coarse_normals(mask)), "default": errors[(1.0, 0.0, 0.0)],
-               "by_scale": {f"{lam:g}": error(bas_relief(est.normals, lam, 0.0, 0.0)) for lam in FINE_SCALES}}
+               "by_scale": {f"{lam:g}": error(bas_relief_normals(est.normals, lam, 0.0, 0.0)) for lam in FINE_SCALES}}
         for name, member in FAMILIES.items():
             best = min((t for t in grid if member(t)), key=errors.get)
             row[name], row[f"{name}_transform"] = errors[best], best
@@ -128,7 +123,7 @@ def main() -> None:
         if args.hypotheses is not None:
             row["hypotheses"] = []
             for mu, nu in itertools.product((-args.hypotheses, 0.0, args.hypotheses), repeat=2):
-                start_normals = bas_relief(est.normals, 1.0, mu, nu) * mask
+                start_normals = bas_relief_normals(est.normals, 1.0, mu, nu) * mask
                 lighting = refit_lighting(image, mask, start_normals, valid=cfg.valid_refit).to(image.dtype)
                 refined = refine_shape_and_lighting(image, mask, start_normals, lighting, confidence=est.confidence,
                                                     config=cfg.refine, silhouette=cfg.silhouette)
@@ -141,7 +136,7 @@ def main() -> None:
                 row[f"by_{key}"], row[f"by_{key}_tilt"] = picked["error"], picked["tilt"]
             line += f" | by loss {row['by_loss']:6.2f} at {row['by_loss_tilt']}"
         if args.lighting_prior is not None:
-            normals = torch.cat([bas_relief(est.normals, *t) * mask for t in grid])
+            normals = torch.cat([bas_relief_normals(est.normals, *t) * mask for t in grid])
             images, masks = image.expand(len(grid), -1, -1, -1), mask.expand(len(grid), -1, -1, -1)
             lightings_t = refit_lighting(images, masks, normals, valid=cfg.valid_refit).to(image.dtype)
             photometric = photometric_residual(normals, lightings_t, images, masks)

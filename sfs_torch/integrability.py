@@ -51,6 +51,7 @@ __all__ = [
     "integrate_normals",
     "integrate_convex",
     "depth_to_normals",
+    "bas_relief_normals",
     "depth_to_mesh",
     "mask_components",
 ]
@@ -726,6 +727,25 @@ def depth_to_normals(
             raise ValueError("depth must be positive on the mask under perspective projection")
         s = torch.where(m, torch.log(torch.where(m, depth[:, 0], 1.0)), 0.0)
     return from_batch(field_normals(s, m, focal, principal_point), single)
+
+
+def bas_relief_normals(normals: Tensor, scale: float, tilt_x: float = 0.0, tilt_y: float = 0.0) -> Tensor:
+    r"""Normals of an orthographic surface after a generalised bas-relief transform.
+
+    The surface ``z`` becomes ``scale * z + tilt_x * x + tilt_y * y`` (``x`` right, ``y``
+    up, in pixels): its normals are ``normalize(scale n_x - tilt_x n_z, scale n_y - tilt_y n_z, n_z)``.
+    Under orthographic projection the transform, with the lighting transformed alike,
+    changes the shading of a uniform-albedo object only through an albedo factor
+    (Belhumeur et al. 1999).
+
+    Args:
+        normals: :math:`(B, 3, H, W)` camera-frame normals (0 where there is no surface).
+
+    Returns:
+        :math:`(B, 3, H, W)` unit normals, 0 where ``normals`` is 0.
+    """
+    x, y, z = normals.unbind(1)
+    return F.normalize(torch.stack([scale * x - tilt_x * z, scale * y - tilt_y * z, z], 1), dim=1)
 
 
 def field_normals(s: Tensor, m: Tensor, focal: Optional[float], principal_point: Optional[Sequence[float]]) -> Tensor:

@@ -35,7 +35,6 @@ from typing import Any, Dict, Iterator, Optional, Sequence, Union
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 from torch import Tensor
@@ -48,7 +47,7 @@ from .forest_cache import CACHE_POLICIES, evict_forests, forest_path, load_fores
 from .geometry_db import DatabaseConfig, GeometryDatabase, load_database
 from .geometry_db import _check_config as _check_database_config
 from .image_formation import estimate_noise_sigma
-from .integrability import METHODS, IntegrabilityConfig, Integrator, check_integrability_config
+from .integrability import METHODS, IntegrabilityConfig, Integrator, bas_relief_normals, check_integrability_config
 from .lighting import fit_sh_vectors, render_sh, rotate_sh, sh_basis_vectors
 from .reflectance_map import (
     VALIDITY_DIRECTIONS,
@@ -727,9 +726,8 @@ def _scaled_relief(image: Tensor, mask: Tensor, depth: Tensor, normals: Tensor, 
     if len(items) == 0:
         return depth, normals, sh
     depth, normals, sh = depth.clone(), normals.clone(), sh.clone()
-    scale = torch.tensor([cfg.relief_scale, cfg.relief_scale, 1.0], dtype=normals.dtype, device=normals.device)
     m = mask[items]
-    normals[items] = F.normalize(normals[items] * scale[:, None, None], dim=1) * m
+    normals[items] = bas_relief_normals(normals[items], cfg.relief_scale) * m
     depth[items] = depth[items] * cfg.relief_scale
     sh[items] = refit_lighting(image[items], m, normals[items], valid=cfg.valid_refit).to(sh.dtype)
     return depth, normals, sh

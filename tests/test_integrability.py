@@ -17,6 +17,7 @@ from sfs_torch.integrability import (
     _Multigrid,
     check_integrability_config,
     depth_to_mesh,
+    bas_relief_normals,
     depth_to_normals,
     integrate_convex,
     integrate_normals,
@@ -426,6 +427,21 @@ class TestDepthToNormals:
     def test_exception(self):
         with pytest.raises(ValueError, match="depth"):
             depth_to_normals(torch.zeros(1, 2, 4, 4), torch.ones(1, 1, 4, 4))
+
+
+class TestBasReliefNormals:
+    @pytest.mark.parametrize("scale, tilt_x, tilt_y", [(1.0, 0.0, 0.0), (1.3, 0.0, 0.0), (0.7, 0.4, -0.2)])
+    def test_normals_of_the_transformed_surface(self, scale, tilt_x, tilt_y):
+        # the bump's analytic gradients, transformed: z' = scale z + tilt_x u + tilt_y v
+        u, v = _grid(64)
+        z, n, mask = gaussian_bump(64)
+        p, q = -u / 100.0 * z, -v / 100.0 * z
+        expected = torch.where(mask, _ortho_normals(scale * p + tilt_x, scale * q + tilt_y), 0.0)
+        torch.testing.assert_close(bas_relief_normals(n[None], scale, tilt_x, tilt_y)[0], expected)
+
+    def test_background_stays_zero(self):
+        _, n, mask = gaussian_bump(32)
+        assert bool((bas_relief_normals(n[None], 1.5, 0.3, 0.3)[0][:, ~mask] == 0).all())
 
 
 class TestDepthToMesh:
