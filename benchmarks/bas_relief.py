@@ -101,7 +101,7 @@ def main() -> None:
     cfg = resolve_config({"training": {"cache_forests": "never"}})
     database = load_database(cfg.database, progress=False)
     grid = list(itertools.product(SCALES, TILTS, TILTS))
-    prior = load_lighting_prior()
+    prior = load_lighting_prior() if args.lighting_prior is not None else None
     rows = []
     for scene in synthetic_scenes(shapes, lightings, resolution=args.resolution,
                                   formation=DEGRADATIONS[args.degradation]):

@@ -521,7 +521,7 @@ BAD_CONFIGS = [
     ({"prior_check_highlight": 0.0}, r"^prior_check_highlight must be a number > 0 or null, got 0.0"),
     ({"prior_check_highlight": float("nan")}, r"^prior_check_highlight must be a number > 0 or null, got nan"),
     ({"relief_scale": 0.0}, r"^relief_scale must be a number > 0, got 0.0"),
-    ({"relief_scale": "deep"}, r"relief_scale"),
+    ({"relief_scale": "deep"}, r"'deep' .*could not be converted to Float\s+full_key: relief_scale"),
     ({"integrate": {"method": "l3"}}, r"^integrate.method must be one of .*got 'l3'"),
     ({"integrate": {"tol": 0.0}}, r"^integrate.tol must be > 0"),
     # the solver's options are checked with integrate.method="none" (the default) too
