@@ -739,13 +739,16 @@ def bas_relief_normals(normals: Tensor, scale: float, tilt_x: float = 0.0, tilt_
     (Belhumeur et al. 1999).
 
     Args:
-        normals: :math:`(B, 3, H, W)` camera-frame normals (0 where there is no surface).
+        normals: :math:`(B, 3, H, W)` or :math:`(3, H, W)` camera-frame normals (0 where
+            there is no surface).
 
     Returns:
-        :math:`(B, 3, H, W)` unit normals, 0 where ``normals`` is 0.
+        unit normals of the same shape, 0 where ``normals`` is 0.
     """
+    normals, single = to_batch(normals, "normals", 3)
+    check_shape(normals, "normals", "B 3 H W")
     x, y, z = normals.unbind(1)
-    return F.normalize(torch.stack([scale * x - tilt_x * z, scale * y - tilt_y * z, z], 1), dim=1)
+    return from_batch(F.normalize(torch.stack([scale * x - tilt_x * z, scale * y - tilt_y * z, z], 1), dim=1), single)
 
 
 def field_normals(s: Tensor, m: Tensor, focal: Optional[float], principal_point: Optional[Sequence[float]]) -> Tensor:

@@ -443,6 +443,12 @@ class TestBasReliefNormals:
         _, n, mask = gaussian_bump(32)
         assert bool((bas_relief_normals(n[None], 1.5, 0.3, 0.3)[0][:, ~mask] == 0).all())
 
+    def test_unbatched_input_gives_unbatched_output(self):
+        _, n, _ = gaussian_bump(32)
+        torch.testing.assert_close(bas_relief_normals(n, 1.2, 0.1), bas_relief_normals(n[None], 1.2, 0.1)[0])
+        with pytest.raises(ValueError, match="normals"):
+            bas_relief_normals(torch.zeros(1, 2, 4, 4), 1.2)
+
 
 class TestDepthToMesh:
     def test_orthographic(self):
