@@ -16,7 +16,12 @@ The transformed normals are ``normalize(lam n_x - mu n_z, lam n_y - nu n_z, n_z)
 are oracles (they use the true normals): they say how much error a cue that picked the
 transform could remove, not that any cue can. The script also scores every depth scale of
 ``FINE_SCALES`` applied to all images alike, with no oracle (how the default's
-``relief_scale`` was chosen, on the tuning side). With ``--hypotheses`` the tilts are also
+``relief_scale`` was chosen, on the tuning side), and every rule
+``lam = c * (s / 0.8) ** p`` for ``p`` in ``SLOPE_POWERS``, ``s`` the median slope of each
+image's normals (``sfs_torch.integrability.median_slope``) and ``c`` the factor with the
+lowest mean error over the images (how ``relief_slope_power`` was chosen; run it on the
+call without a relief scale, ``--call '{"relief_scale": 1.0, "relief_slope_power": 0}'``).
+With ``--hypotheses`` the tilts are also
 tried as hypotheses produced alike, with no ground truth: the default's normals tilted,
 the lighting refitted to them (``refit_lighting``) and the joint refinement run from them
 (with the tilted normals as its prior). The tilt whose refinement ends at the lowest loss
@@ -31,11 +36,14 @@ That measures whether the lighting prior can tell the transform.
     python benchmarks/bas_relief.py --shapes 7 --lights 3 --exposure 0.2 --hypotheses
     python benchmarks/bas_relief.py --side test --shapes 6 --lights 5 --degradation all
     python benchmarks/bas_relief.py --shapes 7 --lights 3 --exposure 0.2 --lighting-prior 0.1 0.3 1 3
+    python benchmarks/bas_relief.py --shapes 10 --lights 8 --exposure 0.2 --light-seed 1 \
+        --call '{"relief_scale": 1.0, "relief_slope_power": 0}'
 """
 from __future__ import annotations
 
 import argparse
 import itertools
+import json
 import os
 import statistics
 import time
@@ -54,10 +62,10 @@ from sfs_torch.datasets import (  # noqa: E402
     validation_lightings,
 )
 from sfs_torch.geometry_db import load_database  # noqa: E402
-from sfs_torch.integrability import bas_relief_normals  # noqa: E402
+from sfs_torch.integrability import bas_relief_normals, median_slope  # noqa: E402
 from sfs_torch.metrics import normal_metrics  # noqa: E402
 from sfs_torch.natural_lighting import lighting_prior_energy, load_lighting_prior  # noqa: E402
-from sfs_torch.pipeline import resolve_config  # noqa: E402
+from sfs_torch.pipeline import RELIEF_REFERENCE_SLOPE, resolve_config  # noqa: E402
 from sfs_torch.reflectance_map import refit_lighting  # noqa: E402
 from sfs_torch.refine import photometric_residual, refine_shape_and_lighting  # noqa: E402
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
@@ -68,6 +76,9 @@ SCALES = (0.6, 0.8, 1.0, 1.25, 1.6, 2.0)
 # every image's error at each of these depth scales, for a scale chosen once for all images
 FINE_SCALES = (0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2, 1.3, 1.4, 1.6, 1.8, 2.0)
 TILTS = (-1.0, -0.6, -0.3, 0.0, 0.3, 0.6, 1.0)
+# depth scale c * (s / RELIEF_REFERENCE_SLOPE) ** p per image, s its normals' median slope
+SLOPE_POWERS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.25)
+SLOPE_FACTORS = tuple(round(0.9 + 0.02 * i, 2) for i in range(36))
 # which (scale, tilt_x, tilt_y) of the grid each oracle may choose
 FAMILIES = {"scale": lambda t: t[1] == t[2] == 0, "tilt": lambda t: t[0] == 1, "both": lambda t: True}
 
@@ -78,6 +89,8 @@ def main() -> None:
     parser.add_argument("--shapes", type=int, default=7)
     parser.add_argument("--lights", type=int, default=3)
     parser.add_argument("--first-light", type=int, default=0)
+    parser.add_argument("--light-seed", type=int, default=0, help="validation side: as benchmarks/tune.py's --light-seed")
+    parser.add_argument("--call", default="{}", help="pipeline config overrides of the call, one JSON object")
     parser.add_argument("--exposure", type=float, default=None,
                         help="validation side: as benchmarks/tune.py's --exposure")
     parser.add_argument("--resolution", type=int, default=256)
@@ -88,17 +101,18 @@ def main() -> None:
                         help="also pick the transform by photometric residual + W x lighting prior energy, per W")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "bas_relief.json")
     args = parser.parse_args()
-    if args.side == "test" and args.exposure is not None:
-        parser.error("--exposure is for the validation side: the test side's R&H probes keep their own exposure")
+    if args.side == "test" and (args.exposure is not None or args.light_seed != 0):
+        parser.error("--exposure and --light-seed are for the validation side: the test side's R&H probes keep "
+                     "their own exposure and orientation")
     if args.hypotheses is not None and not args.hypotheses > 0:
         parser.error(f"--hypotheses must be positive, got {args.hypotheses}")
     if args.lighting_prior is not None and not all(w >= 0 for w in args.lighting_prior):
         parser.error(f"--lighting-prior weights must be >= 0, got {args.lighting_prior}")
     shapes = scene_shapes(args.shapes, args.side, sphere=False)
     n = args.first_light + args.lights
-    lightings = (validation_lightings(n, exposure=args.exposure) if args.side == "validation"
+    lightings = (validation_lightings(n, seed=args.light_seed, exposure=args.exposure) if args.side == "validation"
                  else evaluation_lightings(n))[args.first_light:]
-    cfg = resolve_config({"training": {"cache_forests": "never"}})
+    cfg = resolve_config({"training": {"cache_forests": "never"}, **json.loads(args.call)})
     database = load_database(cfg.database, progress=False)
     grid = list(itertools.product(SCALES, TILTS, TILTS))
     prior = load_lighting_prior() if args.lighting_prior is not None else None
@@ -115,6 +129,10 @@ def main() -> None:
         errors = {t: error(bas_relief_normals(est.normals, *t)) for t in grid}
         row = {"case": scene.name, "prior": error(coarse_normals(mask)), "default": errors[(1.0, 0.0, 0.0)],
                "by_scale": {f"{lam:g}": error(bas_relief_normals(est.normals, lam, 0.0, 0.0)) for lam in FINE_SCALES}}
+        row["slope"] = float(median_slope(est.normals, mask))
+        relative = row["slope"] / RELIEF_REFERENCE_SLOPE
+        row["by_slope"] = {f"{p:g}": [error(bas_relief_normals(est.normals, c * relative**p)) for c in SLOPE_FACTORS]
+                           for p in SLOPE_POWERS}
         for name, member in FAMILIES.items():
             best = min((t for t in grid if member(t)), key=errors.get)
             row[name], row[f"{name}_transform"] = errors[best], best
@@ -175,7 +193,18 @@ def main() -> None:
                       "worse": sum(e > r["default"] + 1 for e, r in zip(errors, rows))}
         print(f"  lam {lam:<5}{fixed[lam]['median']:8.2f}{fixed[lam]['mean']:8.2f}"
               f"{fixed[lam]['better']:5d} /{fixed[lam]['worse']:3d}")
-    write_results(args, summary=summary, fixed_scale=fixed, rows=rows)
+    print(f"\ndepth scale c * (s / {RELIEF_REFERENCE_SLOPE}) ** p, s each image's median slope, c the best on the "
+          "mean: median, mean, images better / worse than the default by > 1 deg")
+    by_slope = {}
+    for p in (f"{p:g}" for p in SLOPE_POWERS):
+        best = min(range(len(SLOPE_FACTORS)), key=lambda i: statistics.mean(r["by_slope"][p][i] for r in rows))
+        errors = [r["by_slope"][p][best] for r in rows]
+        by_slope[p] = {"c": SLOPE_FACTORS[best], "median": statistics.median(errors), "mean": statistics.mean(errors),
+                       "better": sum(e < r["default"] - 1 for e, r in zip(errors, rows)),
+                       "worse": sum(e > r["default"] + 1 for e, r in zip(errors, rows))}
+        print(f"  p {p:<5}c {by_slope[p]['c']:<6g}{by_slope[p]['median']:8.2f}{by_slope[p]['mean']:8.2f}"
+              f"{by_slope[p]['better']:5d} /{by_slope[p]['worse']:3d}")
+    write_results(args, summary=summary, fixed_scale=fixed, slope_scale=by_slope, rows=rows)
 
 
 if __name__ == "__main__":

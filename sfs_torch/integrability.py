@@ -52,6 +52,7 @@ __all__ = [
     "integrate_convex",
     "depth_to_normals",
     "bas_relief_normals",
+    "median_slope",
     "depth_to_mesh",
     "mask_components",
 ]
@@ -749,6 +750,30 @@ def bas_relief_normals(normals: Tensor, scale: float, tilt_x: float = 0.0, tilt_
     check_shape(normals, "normals", "B 3 H W")
     x, y, z = normals.unbind(1)
     return from_batch(F.normalize(torch.stack([scale * x - tilt_x * z, scale * y - tilt_y * z, z], 1), dim=1), single)
+
+
+def median_slope(normals: Tensor, mask: Tensor) -> Tensor:
+    r"""Median over each object of its surface slope ``|(n_x, n_y)| / n_z`` (orthographic).
+
+    A bas-relief scale ``s`` multiplies every pixel's slope by ``s`` (:func:`bas_relief_normals`),
+    so it multiplies this median by ``s`` too. ``n_z`` is floored at 1e-3: the rim's
+    normals lie in the image plane, and the median does not depend on how large their slope reads.
+
+    Args:
+        normals: :math:`(B, 3, H, W)` or :math:`(3, H, W)` camera-frame normals.
+        mask: :math:`(B, 1, H, W)` or :math:`(1, H, W)` bool, none empty.
+
+    Returns:
+        :math:`(B,)`, or a 0-d tensor for unbatched input.
+    """
+    normals, single = to_batch(normals, "normals", 3)
+    mask, _ = to_batch(mask, "mask", 1)
+    check_shape(normals, "normals", "B 3 H W")
+    mask = check_mask(mask, allow_full=True)
+    check_same_size(normals, "normals", mask, "mask")
+    slope = normals[:, :2].norm(dim=1) / normals[:, 2].clamp_min(1e-3)
+    out = torch.stack([slope[b][mask[b, 0]].median() for b in range(len(slope))])
+    return out[0] if single else out
 
 
 def field_normals(s: Tensor, m: Tensor, focal: Optional[float], principal_point: Optional[Sequence[float]]) -> Tensor:

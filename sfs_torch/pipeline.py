@@ -47,7 +47,14 @@ from .forest_cache import CACHE_POLICIES, evict_forests, forest_path, load_fores
 from .geometry_db import DatabaseConfig, GeometryDatabase, load_database
 from .geometry_db import _check_config as _check_database_config
 from .image_formation import estimate_noise_sigma
-from .integrability import METHODS, IntegrabilityConfig, Integrator, bas_relief_normals, check_integrability_config
+from .integrability import (
+    METHODS,
+    IntegrabilityConfig,
+    Integrator,
+    bas_relief_normals,
+    check_integrability_config,
+    median_slope,
+)
 from .lighting import fit_sh_vectors, render_sh, rotate_sh, sh_basis_vectors
 from .reflectance_map import (
     VALIDITY_DIRECTIONS,
@@ -181,6 +188,11 @@ class PipelineConfig:
             albedo factor. It corrects the estimate's measured flattening, chosen on
             the tuning side (docs/pipeline.md); 1 leaves the surface as refined. Images
             the prior check returns to the silhouette prior keep Eq. 10's normals.
+        relief_slope_power: makes the relief scale grow with the refined surface's own
+            median slope ``s`` (of ``|(n_x, n_y)| / n_z`` over the object): each image is
+            scaled by ``relief_scale * (s / 0.8) ** relief_slope_power``. The estimates
+            regress towards the typical slope, so steep ones are deepened more and flat
+            ones less; 0 scales every image alike (chosen on the tuning side, docs/pipeline.md).
         normal_rotation: how normals predicted in an orthographic frame are turned into
             a perspective camera's frame: ``"centroid"``, the one rotation of the object's
             centroid (the frame its training lighting is expressed in), or ``"pixel"``, each
@@ -207,6 +219,7 @@ class PipelineConfig:
     prior_check_highlight: Optional[float] = 0.1
     final_round: bool = True
     relief_scale: float = 1.1
+    relief_slope_power: float = 0.0
     normal_rotation: str = "centroid"
     conv_samples_per_tree: int = 1
 
@@ -352,6 +365,8 @@ def _check_config(cfg: PipelineConfig) -> None:
         raise ValueError(f"normal_rotation must be one of {NORMAL_ROTATIONS}, got {cfg.normal_rotation!r}")
     if not is_number(cfg.relief_scale, 0, strict=True):
         raise ValueError(f"relief_scale must be a number > 0, got {cfg.relief_scale!r}")
+    if not is_number(cfg.relief_slope_power):
+        raise ValueError(f"relief_slope_power must be a number, got {cfg.relief_slope_power!r}")
     highlight = cfg.prior_check_highlight
     if highlight is not None and not is_number(highlight, 0, strict=True):
         raise ValueError(f"prior_check_highlight must be a number > 0 or null, got {highlight!r}")
@@ -649,7 +664,7 @@ def estimate(
                     last = _final_round(image_b[b : b + 1], mask_b[b : b + 1], normals[b : b + 1], rows, db, image_cfg,
                                         timer, centroid, focal, principal_point)
                     depth[b], normals[b], sh[b], confidence[b] = (x[0] for x in last)
-        if cfg.relief_scale != 1 and not given and focal is None and depth is not None:
+        if (cfg.relief_scale != 1 or cfg.relief_slope_power != 0) and not given and focal is None and depth is not None:
             with timer("relief scale"):
                 depth, normals, sh = _scaled_relief(image_b, mask_b, depth, normals, sh, ~skip, cfg)
         if cfg.keep_prior and not given and depth is not None:
@@ -721,16 +736,30 @@ def _final_round(image: Tensor, mask: Tensor, normals: Tensor, rows: Tensor, db:
 def _scaled_relief(image: Tensor, mask: Tensor, depth: Tensor, normals: Tensor, sh: Tensor, among: Tensor,
                    cfg: PipelineConfig) -> tuple:
     """``(depth, normals, lighting)`` with the orthographic surfaces of the images in
-    ``among`` (B,) bool deepened by ``cfg.relief_scale`` and their lighting refitted."""
+    ``among`` (B,) bool deepened by their :func:`_relief_factor` and their lighting refitted."""
     items = among.nonzero()[:, 0]
     if len(items) == 0:
         return depth, normals, sh
     depth, normals, sh = depth.clone(), normals.clone(), sh.clone()
     m = mask[items]
-    normals[items] = bas_relief_normals(normals[items], cfg.relief_scale) * m
-    depth[items] = depth[items] * cfg.relief_scale
+    for b in items.tolist():
+        scale = _relief_factor(normals[b], mask[b], cfg)
+        normals[b] = bas_relief_normals(normals[b], scale) * mask[b]
+        depth[b] = depth[b] * scale
     sh[items] = refit_lighting(image[items], m, normals[items], valid=cfg.valid_refit).to(sh.dtype)
     return depth, normals, sh
+
+
+RELIEF_REFERENCE_SLOPE = 0.8  # about the median slope of the tuning images' refined surfaces
+
+
+def _relief_factor(normals: Tensor, mask: Tensor, cfg: PipelineConfig) -> float:
+    """``relief_scale * (s / 0.8) ** relief_slope_power`` for one image's ``(3, H, W)``
+    normals and ``(1, H, W)`` mask, ``s`` their :func:`~sfs_torch.integrability.median_slope`."""
+    if cfg.relief_slope_power == 0:
+        return cfg.relief_scale
+    slope = float(median_slope(normals, mask))
+    return cfg.relief_scale * (slope / RELIEF_REFERENCE_SLOPE) ** cfg.relief_slope_power
 
 
 FREE_FIT_MAX_CLIPPED = 0.25

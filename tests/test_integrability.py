@@ -18,6 +18,7 @@ from sfs_torch.integrability import (
     check_integrability_config,
     depth_to_mesh,
     bas_relief_normals,
+    median_slope,
     depth_to_normals,
     integrate_convex,
     integrate_normals,
@@ -448,6 +449,30 @@ class TestBasReliefNormals:
         torch.testing.assert_close(bas_relief_normals(n, 1.2, 0.1), bas_relief_normals(n[None], 1.2, 0.1)[0])
         with pytest.raises(ValueError, match="normals"):
             bas_relief_normals(torch.zeros(1, 2, 4, 4), 1.2)
+
+
+class TestMedianSlope:
+    def test_a_plane_reads_its_gradient(self):
+        # z = 0.3 u + 0.4 v: slope 0.5 at every pixel
+        mask = torch.zeros(1, 1, 16, 16, dtype=torch.bool)
+        mask[..., 4:12, 4:12] = True
+        n = torch.nn.functional.normalize(torch.tensor([-0.3, -0.4, 1.0]), dim=0)
+        normals = n[None, :, None, None] * mask
+        torch.testing.assert_close(median_slope(normals, mask), torch.tensor([0.5]))
+
+    def test_a_bas_relief_scale_multiplies_it(self):
+        _, n, mask = gaussian_bump(48)
+        before = median_slope(n, mask[None])
+        assert 0.05 < float(before) < 5
+        torch.testing.assert_close(median_slope(bas_relief_normals(n, 1.7), mask[None]), 1.7 * before)
+
+    def test_unbatched_and_errors(self):
+        _, n, mask = gaussian_bump(32)
+        assert median_slope(n, mask[None]).shape == ()
+        with pytest.raises(ValueError, match="empty"):
+            median_slope(n[None], torch.zeros(1, 1, 32, 32, dtype=torch.bool))
+        with pytest.raises(ValueError, match="normals"):
+            median_slope(torch.zeros(1, 2, 32, 32), mask[None, None])
 
 
 class TestDepthToMesh:

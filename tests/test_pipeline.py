@@ -419,6 +419,25 @@ class TestReliefScale:
         assert float(normal_metrics(from_depth, deep.normals[None], interior).median[0]) < 1.0
         assert "relief scale" in deep.timings and "relief scale" not in flat.timings
 
+    def test_the_scale_grows_with_the_surfaces_own_median_slope(self, scene):
+        _, mask, _, image = scene
+        config = dict(TINY, keep_prior=False)
+        flat = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.0), progress=False)
+        deep = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.2, relief_slope_power=0.5),
+                                  progress=False)
+        n = flat.normals[:, mask[0]]
+        slope = float((n[:2].norm(dim=0) / n[2]).median())
+        assert 0.2 < slope < 2.0  # a rim pixel's n_z near 0 does not move the median
+        factor = 1.2 * (slope / 0.8) ** 0.5
+        torch.testing.assert_close(deep.depth, factor * flat.depth)
+        n = flat.normals
+        expected = torch.nn.functional.normalize(torch.stack([factor * n[0], factor * n[1], n[2]]), dim=0) * mask
+        torch.testing.assert_close(deep.normals, expected)
+        # a steeper surface of the same image is deepened more: its own slope sets the factor
+        steep = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.2, relief_slope_power=1.0),
+                                   progress=False)
+        assert (float(steep.depth.abs().max()) > float(deep.depth.abs().max())) == (slope > 0.8)
+
     @pytest.mark.parametrize("case", ["known lighting", "perspective", "kept prior"])
     def test_left_alone(self, scene, case):
         _, mask, sh, image = scene
@@ -522,6 +541,7 @@ BAD_CONFIGS = [
     ({"prior_check_highlight": float("nan")}, r"^prior_check_highlight must be a number > 0 or null, got nan"),
     ({"relief_scale": 0.0}, r"^relief_scale must be a number > 0, got 0.0"),
     ({"relief_scale": "deep"}, r"'deep' .*could not be converted to Float\s+full_key: relief_scale"),
+    ({"relief_slope_power": float("inf")}, r"^relief_slope_power must be a number, got inf"),
     ({"integrate": {"method": "l3"}}, r"^integrate.method must be one of .*got 'l3'"),
     ({"integrate": {"tol": 0.0}}, r"^integrate.tol must be > 0"),
     # the solver's options are checked with integrate.method="none" (the default) too
