@@ -48,10 +48,11 @@ ABLATION = [
                                            "refine": {"when": "never"}}),
     ("+ prior check, image-noise matching", {"refine": {"when": "never"}}),
     ("+ joint refinement of surface and lighting", {"refine": {"lighting_weight": 0.0}, "final_round": False,
-                                                    "relief_scale": 1.0}),
-    ("+ natural-lighting prior", {"final_round": False, "relief_scale": 1.0}),
-    ("+ final unjittered round", {"relief_scale": 1.0}),
-    ("+ relief scale (the default)", {}),
+                                                    "relief_scale": 1.0, "relief_slope_power": 0.0}),
+    ("+ natural-lighting prior", {"final_round": False, "relief_scale": 1.0, "relief_slope_power": 0.0}),
+    ("+ final unjittered round", {"relief_scale": 1.0, "relief_slope_power": 0.0}),
+    ("+ fixed relief scale", {"relief_scale": 1.1, "relief_slope_power": 0.0}),
+    ("+ relief scale growing with the slope (the default)", {}),
     ("the default, true lighting given", {"lighting": "known"}),
 ]
 

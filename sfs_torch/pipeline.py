@@ -19,8 +19,8 @@
    fitted to the image, per pixel under a given lighting, and an estimated lighting
    refined jointly with an integrable surface (``refine.when``, default ``"always"``),
    then once more from an unjittered forest trained for the refined lighting
-   (``final_round``), and an estimated orthographic surface deepened by a fixed factor
-   (``relief_scale``, not in the paper);
+   (``final_round``), and an estimated orthographic surface deepened by a factor that
+   grows with its median slope (``relief_scale``, ``relief_slope_power``, not in the paper);
 7. optional integrability refinement (:mod:`sfs_torch.integrability`).
 """
 from __future__ import annotations
@@ -182,12 +182,14 @@ class PipelineConfig:
             normals, whose surface, lighting and confidence are returned (one more forest
             and refinement; measured in docs/pipeline.md).
         relief_scale: with an estimated lighting and an orthographic camera, after the
-            joint refinement (and ``final_round``): the refined surface's depth times this,
-            a bas-relief transform (its normals ``(s n_x, s n_y, n_z)`` normalised, the
+            joint refinement (and ``final_round``): the refined surface's depth is multiplied
+            by a factor, ``relief_scale`` for a surface of median slope 0.8 (below), a
+            bas-relief transform (its normals ``(s n_x, s n_y, n_z)`` normalised, the
             lighting refitted to them), which changes the image's shading only through an
             albedo factor. It corrects the estimate's measured flattening, chosen on
-            the tuning side (docs/pipeline.md); 1 leaves the surface as refined. Images
-            the prior check returns to the silhouette prior keep Eq. 10's normals.
+            the tuning side (docs/pipeline.md); 1 with ``relief_slope_power=0`` leaves the
+            surface as refined. Images the prior check returns to the silhouette prior
+            keep Eq. 10's normals.
         relief_slope_power: makes the relief scale grow with the refined surface's own
             median slope ``s`` (of ``|(n_x, n_y)| / n_z`` over the object): each image is
             scaled by ``relief_scale * (s / 0.8) ** relief_slope_power``. The estimates
@@ -218,8 +220,8 @@ class PipelineConfig:
     keep_prior: bool = True
     prior_check_highlight: Optional[float] = 0.1
     final_round: bool = True
-    relief_scale: float = 1.1
-    relief_slope_power: float = 0.0
+    relief_scale: float = 1.22
+    relief_slope_power: float = 0.5
     normal_rotation: str = "centroid"
     conv_samples_per_tree: int = 1
 

@@ -368,6 +368,10 @@ class TestKeepPrior:
         assert torch.equal(est.lighting, sh)
 
 
+NO_RELIEF = {"relief_scale": 1.0, "relief_slope_power": 0}  # the refined surface as it is
+DEEPER = {"relief_scale": 1.5, "relief_slope_power": 0}
+
+
 class TestFinalRound:
     def test_it_refines_an_unjittered_forest_trained_for_the_refined_lighting(self, scene, monkeypatch):
         # keep_prior=false: the sphere's prior would be kept, and a kept prior is not refined
@@ -385,7 +389,7 @@ class TestFinalRound:
 
         monkeypatch.setattr(pipeline, "_forest_rounds", recording_rounds)
         monkeypatch.setattr(pipeline, "refine_shape_and_lighting", recording_refine)
-        est = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False, relief_scale=1.0), progress=False)
+        est = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False, **NO_RELIEF), progress=False)
         assert len(rounds) == 2 and len(refinements) == 2
         (_, jitter, _, refits), (last_sh, *unjittered) = rounds
         assert jitter > 0 and refits == 1  # the call's own forests
@@ -396,7 +400,7 @@ class TestFinalRound:
         torch.testing.assert_close(est.depth, refinements[1].depth[0])
         assert "final round" in est.timings
         rounds.clear(), refinements.clear()
-        off = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False, final_round=False, relief_scale=1.0),
+        off = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False, final_round=False, **NO_RELIEF),
                                  progress=False)
         assert len(rounds) == 1 and len(refinements) == 1
         torch.testing.assert_close(off.normals, refinements[0].normals[0])
@@ -406,8 +410,8 @@ class TestReliefScale:
     def test_an_estimated_orthographic_surface_is_deepened_and_its_lighting_refitted(self, scene):
         _, mask, _, image = scene
         config = dict(TINY, keep_prior=False)
-        flat = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.0), progress=False)
-        deep = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.5), progress=False)
+        flat = sfs_torch.estimate(image, mask, config=dict(config, **NO_RELIEF), progress=False)
+        deep = sfs_torch.estimate(image, mask, config=dict(config, **DEEPER), progress=False)
         torch.testing.assert_close(deep.depth, 1.5 * flat.depth)
         n = flat.normals
         expected = torch.nn.functional.normalize(torch.stack([1.5 * n[0], 1.5 * n[1], n[2]]), dim=0) * mask
@@ -422,7 +426,7 @@ class TestReliefScale:
     def test_the_scale_grows_with_the_surfaces_own_median_slope(self, scene):
         _, mask, _, image = scene
         config = dict(TINY, keep_prior=False)
-        flat = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.0), progress=False)
+        flat = sfs_torch.estimate(image, mask, config=dict(config, **NO_RELIEF), progress=False)
         deep = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.2, relief_slope_power=0.5),
                                   progress=False)
         n = flat.normals[:, mask[0]]
@@ -444,8 +448,8 @@ class TestReliefScale:
         kwargs = {"known lighting": {"lighting": sh}, "perspective": {"focal": 300.0}, "kept prior": {}}[case]
         # the sphere's silhouette prior is kept (TestKeepPrior), so nothing is deepened
         config = dict(TINY, keep_prior=case == "kept prior")
-        flat = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.0), progress=False, **kwargs)
-        deep = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.5), progress=False, **kwargs)
+        flat = sfs_torch.estimate(image, mask, config=dict(config, **NO_RELIEF), progress=False, **kwargs)
+        deep = sfs_torch.estimate(image, mask, config=dict(config, **DEEPER), progress=False, **kwargs)
         assert torch.equal(deep.normals, flat.normals) and torch.equal(deep.lighting, flat.lighting)
 
 
