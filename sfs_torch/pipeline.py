@@ -192,9 +192,10 @@ class PipelineConfig:
             keep Eq. 10's normals.
         relief_slope_power: makes the relief scale grow with the refined surface's own
             median slope ``s`` (of ``|(n_x, n_y)| / n_z`` over the object): each image is
-            scaled by ``relief_scale * (s / 0.8) ** relief_slope_power``. The estimates
-            regress towards the typical slope, so steep ones are deepened more and flat
-            ones less; 0 scales every image alike (chosen on the tuning side, docs/pipeline.md).
+            scaled by ``relief_scale * (s / 0.8) ** relief_slope_power``: on the tuning
+            images the steep estimates came out the flattest, so they are deepened more and
+            flat ones less; 0 scales every image alike (chosen on the tuning side,
+            docs/pipeline.md).
         normal_rotation: how normals predicted in an orthographic frame are turned into
             a perspective camera's frame: ``"centroid"``, the one rotation of the object's
             centroid (the frame its training lighting is expressed in), or ``"pixel"``, each
