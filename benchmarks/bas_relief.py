@@ -83,13 +83,22 @@ SLOPE_FACTORS = tuple(round(0.9 + 0.02 * i, 2) for i in range(36))
 FAMILIES = {"scale": lambda t: t[1] == t[2] == 0, "tilt": lambda t: t[0] == 1, "both": lambda t: True}
 
 
+def against_default(errors: list, rows: list) -> dict:
+    """Median and mean of one rule's per-image ``errors``, and how many images it makes better
+    / worse than the default call (``rows[i]["default"]``) by more than 1 deg."""
+    return {"median": statistics.median(errors), "mean": statistics.mean(errors),
+            "better": sum(e < r["default"] - 1 for e, r in zip(errors, rows)),
+            "worse": sum(e > r["default"] + 1 for e, r in zip(errors, rows))}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--side", choices=["validation", "test"], default="validation")
     parser.add_argument("--shapes", type=int, default=7)
     parser.add_argument("--lights", type=int, default=3)
     parser.add_argument("--first-light", type=int, default=0)
-    parser.add_argument("--light-seed", type=int, default=0, help="validation side: as benchmarks/tune.py's --light-seed")
+    parser.add_argument("--light-seed", type=int, default=0,
+                        help="validation side: as benchmarks/tune.py's --light-seed")
     parser.add_argument("--call", default="{}", help="pipeline config overrides of the call, one JSON object")
     parser.add_argument("--exposure", type=float, default=None,
                         help="validation side: as benchmarks/tune.py's --exposure")
@@ -185,25 +194,17 @@ def main() -> None:
         print(f"{labels[c]:<32}{summary[c]['median']:>8.2f}{summary[c]['mean']:>8.2f}")
     print("\none depth scale for every image (no oracle): median, mean, images better / worse than the default "
           "by > 1 deg")
-    fixed = {}
-    for lam in (f"{lam:g}" for lam in FINE_SCALES):
-        errors = [r["by_scale"][lam] for r in rows]
-        fixed[lam] = {"median": statistics.median(errors), "mean": statistics.mean(errors),
-                      "better": sum(e < r["default"] - 1 for e, r in zip(errors, rows)),
-                      "worse": sum(e > r["default"] + 1 for e, r in zip(errors, rows))}
-        print(f"  lam {lam:<5}{fixed[lam]['median']:8.2f}{fixed[lam]['mean']:8.2f}"
-              f"{fixed[lam]['better']:5d} /{fixed[lam]['worse']:3d}")
+    fixed = {lam: against_default([r["by_scale"][lam] for r in rows], rows) for lam in (f"{x:g}" for x in FINE_SCALES)}
+    for lam, row in fixed.items():
+        print(f"  lam {lam:<5}{row['median']:8.2f}{row['mean']:8.2f}{row['better']:5d} /{row['worse']:3d}")
     print(f"\ndepth scale c * (s / {RELIEF_REFERENCE_SLOPE}) ** p, s each image's median slope, c the best on the "
           "mean: median, mean, images better / worse than the default by > 1 deg")
     by_slope = {}
-    for p in (f"{p:g}" for p in SLOPE_POWERS):
+    for p in (f"{x:g}" for x in SLOPE_POWERS):
         best = min(range(len(SLOPE_FACTORS)), key=lambda i: statistics.mean(r["by_slope"][p][i] for r in rows))
-        errors = [r["by_slope"][p][best] for r in rows]
-        by_slope[p] = {"c": SLOPE_FACTORS[best], "median": statistics.median(errors), "mean": statistics.mean(errors),
-                       "better": sum(e < r["default"] - 1 for e, r in zip(errors, rows)),
-                       "worse": sum(e > r["default"] + 1 for e, r in zip(errors, rows))}
-        print(f"  p {p:<5}c {by_slope[p]['c']:<6g}{by_slope[p]['median']:8.2f}{by_slope[p]['mean']:8.2f}"
-              f"{by_slope[p]['better']:5d} /{by_slope[p]['worse']:3d}")
+        by_slope[p] = {"c": SLOPE_FACTORS[best], **against_default([r["by_slope"][p][best] for r in rows], rows)}
+        row = by_slope[p]
+        print(f"  p {p:<5}c {row['c']:<6g}{row['median']:8.2f}{row['mean']:8.2f}{row['better']:5d} /{row['worse']:3d}")
     write_results(args, summary=summary, fixed_scale=fixed, slope_scale=by_slope, rows=rows)
 
 
