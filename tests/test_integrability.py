@@ -15,14 +15,14 @@ from sfs_torch.integrability import (
     _CoarseInverse,
     _Level,
     _Multigrid,
+    bas_relief_normals,
     check_integrability_config,
     depth_to_mesh,
-    bas_relief_normals,
-    median_slope,
     depth_to_normals,
     integrate_convex,
     integrate_normals,
     mask_components,
+    median_slope,
 )
 
 F64 = torch.float64
