@@ -24,7 +24,6 @@ own call and defaults) and by the convex combination (a further ``estimate`` cal
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import time
@@ -41,6 +40,8 @@ from sfs_torch.integrability import integrate_normals  # noqa: E402
 from sfs_torch.metrics import lmse, normal_metrics  # noqa: E402
 from sfs_torch.refine import RefineConfig, refine_shape_and_lighting  # noqa: E402
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
+
+from _results import write_results  # noqa: E402
 
 
 def main() -> None:
@@ -150,9 +151,7 @@ def main() -> None:
         print(f"{label:<36}{summary['median_seconds_per_call'][key]:>28.2f}")
     for k, v in stages.items():
         print(f"  {k:<34}{v:>28.3f}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"summary": summary, "rows": rows}, indent=2))
-    print(f"\nwrote {args.out}")
+    write_results(args, summary=summary, rows=rows)
 
 
 if __name__ == "__main__":

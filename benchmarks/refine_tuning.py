@@ -27,6 +27,8 @@ from sfs_torch.datasets import scene_shapes, synthetic_scenes, validation_lighti
 from sfs_torch.metrics import lmse, normal_metrics  # noqa: E402
 from sfs_torch.refine import RefineConfig, refine_shape_and_lighting  # noqa: E402
 
+from _results import write_results  # noqa: E402
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -65,9 +67,7 @@ def main() -> None:
     print(f"\nmedian over {len(rows)} images; variants: {dict(enumerate(variants))}")
     for key, value in summary.items():
         print(f"  {key:<18}{value:10.4f}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"variants": variants, "summary": summary, "rows": rows}, indent=2))
-    print(f"wrote {args.out}")
+    write_results(args, variants=variants, summary=summary, rows=rows)
 
 
 if __name__ == "__main__":

@@ -10,7 +10,6 @@ alone, ``refine.when=never``) with ``valid_refit`` true and false.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 from pathlib import Path
@@ -20,6 +19,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import sfs_torch  # noqa: E402
 from sfs_torch.datasets import evaluation_lightings, scene_shapes, synthetic_scenes  # noqa: E402
 from sfs_torch.metrics import normal_metrics  # noqa: E402
+
+from _results import write_results  # noqa: E402
 
 
 def main() -> None:
@@ -45,9 +46,7 @@ def main() -> None:
     print(f"\n{'refit':<16}{'median':>10}{'mean':>10}   ({len(rows)} images, focal {args.focal})")
     for key, value in summary.items():
         print(f"{key:<16}{value['median']:>10.2f}{value['mean']:>10.2f}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"summary": summary, "rows": rows}, indent=2))
-    print(f"wrote {args.out}")
+    write_results(args, summary=summary, rows=rows)
 
 
 if __name__ == "__main__":
