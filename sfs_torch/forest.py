@@ -368,8 +368,9 @@ class VMFForest:
             raise ValueError("normals must be unit vectors (|n| = 1 within 1e-3)")
         m = self._validate_params(X.shape[1])
         device = torch.device(self.device) if self.device is not None else X.device
-        X = X.to(device).contiguous()
-        normals = normals.to(device=device, dtype=X.dtype)
+        # hard splits carry no gradient: training data that requires grad is read as constants
+        X = X.detach().to(device).contiguous()
+        normals = normals.detach().to(device=device, dtype=X.dtype)
         generator = torch.Generator().manual_seed(self.seed)
 
         edges = _quantile_edges(X, self.n_bins, generator)

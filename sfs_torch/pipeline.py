@@ -578,7 +578,10 @@ def estimate(
             ``n_shapes`` shapes and ``n_shapes * n_views * samples_per_view`` patches).
 
     Returns:
-        :class:`Estimate`; tensors without the batch axis for unbatched input.
+        :class:`Estimate`; tensors without the batch axis for unbatched input. Not
+        differentiable (the forest's splits are hard thresholds): an ``image`` or
+        ``lighting`` that requires grad is read as a constant, and no output carries a
+        gradient.
 
     Raises:
         ValueError: bad shapes, dtypes, values, empty or full masks, unknown options,
@@ -832,7 +835,9 @@ def _checked_image_and_mask(image: Any, mask: Any, principal_point: Optional[tup
     check_finite(image_b, "image")
     if bool((image_b < 0).any()) or bool((image_b > 1).any()):
         raise ValueError("image must hold linear RGB values in [0, 1]; rescale it (or decode 8/16-bit integers first)")
-    image_b = image_b.float().contiguous()  # a numpy (H, W, 3) view gives the same sums as a tensor
+    # a numpy (H, W, 3) view gives the same sums as a tensor; no gradient flows through
+    # the forest's splits, so an image that requires grad is read as a constant
+    image_b = image_b.detach().float().contiguous()
     mask_b = check_mask(_as_mask_tensor(mask, image_b, single))
     check_same_size(image_b, "image", mask_b, "mask")
     _warn_outside_assumptions(image_b, mask_b, principal_point)
@@ -995,7 +1000,7 @@ def _to_camera(normals: Tensor, centroid: Tensor, focal: float, principal_point,
 def _as_lighting(lighting: Any, batch: int) -> Tensor:
     """A given lighting as ``(B, 3, 9)`` float32 (shape, type and finiteness checked)."""
     try:
-        sh = torch.as_tensor(lighting, dtype=torch.float32)
+        sh = torch.as_tensor(lighting, dtype=torch.float32).detach()
     except (TypeError, ValueError, RuntimeError):
         raise TypeError(
             f"lighting must be SH coefficients of shape (3, 9) or ({batch}, 3, 9), got {type(lighting).__name__} "

@@ -386,7 +386,8 @@ def refine_shape_and_lighting(
             :class:`~sfs_torch.silhouette.SilhouetteConfig`.
 
     Returns:
-        :class:`Refinement`. The optimisation itself is not differentiated through.
+        :class:`Refinement`. The optimisation itself is not differentiated through: inputs
+        that require grad are read as constants and no output carries a gradient.
 
     Raises:
         ValueError: wrong shapes, non-finite values, negative confidence, bad options.
@@ -405,8 +406,12 @@ def refine_shape_and_lighting(
         raise ValueError(f"lighting must have one (3, 9) lighting per image, got {tuple(lighting.shape)}")
     for x, name in ((image, "image"), (normals, "normals"), (lighting, "lighting")):
         check_finite(x, name)
+    # the optimisation is not differentiated through: every closure's backward would also
+    # run into a graph the inputs bring with them (and fail at the second)
+    image, normals, lighting = image.detach(), normals.detach(), lighting.detach()
     if confidence is None:
         confidence = mask.to(image.dtype)
+    confidence = confidence.detach()
     check_shape(confidence, "confidence", "B 1 H W")
     check_finite(confidence, "confidence")
     if bool((confidence < 0).any()):

@@ -512,6 +512,16 @@ class TestVMFForest:
         k_noisy = VMFForest(**kw).fit(X, n_noisy).predict(X[:2000]).kappa.median()
         assert float(k_noisy) < 0.5 * float(k_clean)
 
+    def test_training_data_that_requires_grad_is_read_as_constants(self):
+        # hard splits carry no gradient; targets that required grad failed in a numpy() call deep inside
+        X, normals = _smooth_data(2_000, seed=0)
+        kw = dict(n_trees=2, max_depth=6)
+        graph = VMFForest(**kw).fit(X.clone().requires_grad_() * 1, normals.clone().requires_grad_() * 1)
+        plain = VMFForest(**kw).fit(X, normals)
+        pred, expected = graph.predict(X[:200].clone().requires_grad_()), plain.predict(X[:200])
+        assert not pred.mean.requires_grad and torch.equal(pred.mean, expected.mean)
+        assert torch.equal(pred.kappa, expected.kappa)
+
     def test_predict_combines_leaves(self):
         X, normals = _smooth_data(5_000, seed=0)
         forest = VMFForest(n_trees=5, max_depth=6).fit(X, normals)

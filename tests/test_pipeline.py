@@ -759,6 +759,19 @@ class TestInputValidation:
             sfs_torch.estimate(torch.full_like(image, 0.4) * mask, mask, lighting=sh, config=TINY, progress=False)
 
 
+    @pytest.mark.parametrize("given", [False, True], ids=["estimated", "given"])
+    def test_inputs_that_require_grad_are_read_as_constants(self, sphere_scene, given):
+        # an upstream network's output requires grad; the call is not differentiable (the
+        # forest's splits), and its refinement once failed in L-BFGS's second backward
+        image, mask, sh = sphere_scene
+        lighting = sh.clone().requires_grad_() if given else None
+        config = {**TINY, "final_round": False, "refine": {"iterations": 5}}
+        est = sfs_torch.estimate(image.clone().requires_grad_(), mask, lighting=lighting, config=config, progress=False)
+        plain = sfs_torch.estimate(image, mask, lighting=None if lighting is None else sh, config=config,
+                                   progress=False)
+        assert not est.normals.requires_grad and not est.lighting.requires_grad
+        assert torch.equal(est.normals, plain.normals) and torch.equal(est.lighting, plain.lighting)
+
 class TestSaturatedImage:
     """docs/robustness.md: half of the object's pixels saturated at 1 (the lighting scaled up
     until its median pixel clips), default settings against ``refine_rounds=0``, both before the

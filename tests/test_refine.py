@@ -285,6 +285,18 @@ class TestRefineShapeAndLighting:
         assert _error(out.normals, normals, mask) < 0.5 * _error(start, normals, mask)
         assert bool((out.depth[mask] > 0).all()) and float(out.depth[~mask].abs().max()) == 0.0
 
+    def test_inputs_that_require_grad_are_not_differentiated_through(self, scene):
+        # the optimisation is not differentiated through: graphs attached to the inputs
+        # (an upstream network's) are left alone instead of being backpropagated into twice
+        _, mask, sh, image, start, start_sh = scene
+        cfg = RefineConfig(model="surface", iterations=5)
+        # outputs of a graph (not leaves), whose saved tensors a first backward frees
+        image_g, start_g, start_sh_g = (x.clone().requires_grad_() * torch.ones_like(x) for x in (image, start, start_sh))
+        out = refine_shape_and_lighting(image_g, mask, start_g, start_sh_g, config=cfg)
+        plain = refine_shape_and_lighting(image, mask, start, start_sh, config=cfg)
+        assert not (out.normals.requires_grad or out.lighting.requires_grad or out.depth.requires_grad)
+        assert torch.equal(out.normals, plain.normals) and torch.equal(out.lighting, plain.lighting)
+
     def test_outputs_unit_inside_zero_outside(self, scene):
         _, mask, sh, image, start, start_sh = scene
         out = refine_shape_and_lighting(image, mask, start, start_sh, config=RefineConfig(model="surface", iterations=5))
