@@ -185,11 +185,18 @@ def photometric_residual(
 
     Args:
         normals: :math:`(B, 3, H, W)`; lighting: :math:`(B, 3, 9)`; image:
-            :math:`(B, 3, H, W)`; mask: :math:`(B, 1, H, W)` bool.
+            :math:`(B, 3, H, W)`; mask: :math:`(B, 1, H, W)` bool or 0/1.
 
     Returns:
         :math:`(B,)`, differentiable in ``normals`` and ``lighting``.
+
+    Raises:
+        ValueError: wrong shapes, sizes or mask values, an empty mask.
     """
+    mask = _checked_fields(normals, image, mask)
+    check_shape(lighting, "lighting", "B 3 9")
+    if lighting.shape[0] != image.shape[0]:
+        raise ValueError(f"lighting must have one (3, 9) lighting per image, got {tuple(lighting.shape)}")
     return _robust_residual(render_sh(normals, lighting), image, mask, delta, dark_level)
 
 
@@ -220,11 +227,15 @@ def free_lighting_residual(
     bright side beyond the dark side's are capped.
 
     Args:
-        normals: :math:`(B, 3, H, W)`; image: :math:`(B, 3, H, W)`; mask: :math:`(B, 1, H, W)` bool.
+        normals: :math:`(B, 3, H, W)`; image: :math:`(B, 3, H, W)`; mask: :math:`(B, 1, H, W)` bool or 0/1.
 
     Returns:
         :math:`(B,)`.
+
+    Raises:
+        ValueError: wrong shapes, sizes or mask values, an empty mask, bad options.
     """
+    mask = _checked_fields(normals, image, mask)
     if highlight is not None and not highlight > 0:
         raise ValueError(f"highlight must be > 0 or None, got {highlight}")
     if not 0 <= highlight_quantile <= 1:
@@ -274,6 +285,17 @@ def free_lighting_residual(
         cap = _charbonnier(threshold, delta)[:, None, None, None]
         penalty = torch.where(bright, cap.to(penalty), penalty)
     return _masked_mean(penalty, mask)
+
+
+def _checked_fields(normals: Tensor, image: Tensor, mask: Tensor) -> Tensor:
+    """``mask`` as bool, after checking that ``normals`` and ``image`` are :math:`(B, 3, H, W)`
+    and ``mask`` a non-empty :math:`(B, 1, H, W)` of the same sizes (the residuals' inputs)."""
+    check_shape(normals, "normals", "B 3 H W")
+    check_shape(image, "image", "B 3 H W")
+    mask = check_mask(mask, allow_full=True)
+    check_same_size(image, "image", normals, "normals")
+    check_same_size(image, "image", mask, "mask")
+    return mask
 
 
 def _unclipped_pixels(image: Tensor, mask: Tensor, dark_level: float = RefineConfig.dark_level) -> Tensor:
@@ -339,7 +361,8 @@ def refinement_loss(
         :class:`RefinementLoss`.
     """
     cfg = config or RefineConfig()
-    photometric = photometric_residual(normals, lighting, image, mask, delta=cfg.delta, dark_level=cfg.dark_level)
+    # unchecked: called in every step of the refinement, on the fields it checked at its entry
+    photometric = _robust_residual(render_sh(normals, lighting), image, mask, cfg.delta, cfg.dark_level)
     normal_prior = _masked_mean(confidence * (1 - (normals * prior_normals).sum(1, keepdim=True)), mask)
     rim = rim_normals.abs().sum(1, keepdim=True) > 0
     contour = _masked_mean(1 - (normals * rim_normals).sum(1, keepdim=True), rim)

@@ -100,6 +100,39 @@ class TestFreeLightingResidual:
         assert torch.allclose(both[:1], free_lighting_residual(normals, image, mask), rtol=1e-5)
 
 
+class TestResidualInputs:
+    """The two public residuals check their fields: unbatched input once scored 0 silently."""
+
+    @pytest.fixture()
+    def fields(self, sun):
+        normals, mask, image = sun
+        return normals, image, mask, refit_lighting(image, mask, normals, valid=False)
+
+    def test_a_0_1_mask_scores_as_the_bool_one(self, fields):
+        normals, image, mask, sh = fields
+        assert torch.equal(free_lighting_residual(normals, image, mask.float()), free_lighting_residual(normals, image, mask))
+        assert torch.equal(photometric_residual(normals, sh, image, mask.float()), photometric_residual(normals, sh, image, mask))
+
+    @pytest.mark.parametrize("case, match", [
+        ("unbatched", r"normals must have shape \(B, 3, H, W\)"),
+        ("swapped", r"image must have shape \(B, 3, H, W\)"),
+        ("other size", "image and mask must have the same"),
+        ("empty", "mask is empty"),
+    ])
+    def test_bad_fields_are_named(self, fields, case, match):
+        normals, image, mask, sh = fields
+        args = {"unbatched": (normals[0], image[0], mask[0]), "swapped": (normals, mask, image),
+                "other size": (normals, image, mask[..., 1:]), "empty": (normals, image, torch.zeros_like(mask))}[case]
+        with pytest.raises(ValueError, match=match):
+            free_lighting_residual(*args)
+        with pytest.raises(ValueError, match=match):
+            photometric_residual(args[0], sh if case != "unbatched" else sh[0], *args[1:])
+
+    def test_lighting_of_another_batch_is_refused(self, fields):
+        normals, image, mask, sh = fields
+        with pytest.raises(ValueError, match="one \\(3, 9\\) lighting per image"):
+            photometric_residual(normals, torch.cat([sh, sh]), image, mask)
+
 @pytest.fixture(scope="module")
 def glossy(scene):
     """The scene's sphere with the realistic formation's specular highlight."""
