@@ -183,6 +183,8 @@ def sample_vmf(vmf: VMF, n_samples: int, generator: Optional[torch.Generator] = 
     Returns:
         unit vectors, :math:`(..., n\_samples, 3)`.
     """
+    if not isinstance(vmf, VMF):
+        raise TypeError(f"vmf must be a VMF(mean, kappa) (e.g. VMFForest.predict's output), got {type(vmf).__name__}")
     check_shape(vmf.mean, "vmf.mean", " ".join(["D"] * (vmf.mean.ndim - 1) + ["3"]))
     if vmf.kappa.shape != vmf.mean.shape[:-1]:
         raise ValueError(f"vmf.kappa must have shape {tuple(vmf.mean.shape[:-1])}, got {tuple(vmf.kappa.shape)}")

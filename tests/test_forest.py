@@ -154,6 +154,8 @@ class TestSampleVMF:
             sample_vmf(VMF(torch.zeros(2, 3), torch.zeros(3)), 4)
         with pytest.raises(ValueError, match="n_samples"):
             sample_vmf(VMF(torch.tensor([[0.0, 0.0, 1.0]]), torch.ones(1)), 0)
+        with pytest.raises(TypeError, match="vmf must be a VMF"):
+            sample_vmf(torch.tensor([[0.0, 0.0, 1.0]]), 4)  # the mean alone: once an AttributeError on .ndim
 
 
 def _brute_force_root(X, normals, min_samples_leaf, thresholds):
