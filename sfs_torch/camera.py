@@ -13,7 +13,7 @@ from typing import Optional, Sequence, Tuple
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_shape, from_batch, to_batch
+from ._checks import check_mask, check_shape, from_batch, to_batch
 
 __all__ = [
     "CameraConfig",
@@ -43,6 +43,9 @@ class CameraConfig:
 
 def _positive_focal(focal) -> float:
     """``focal`` as a float, or ``ValueError`` unless it is a finite positive number."""
+    # float() would also read the string "50" (or True): a focal length must be a number
+    if isinstance(focal, (str, bytes, bool)):
+        raise ValueError(f"focal must be a positive focal length in pixels, got {focal!r}")
     try:
         value = float(focal)
     except (TypeError, ValueError):
@@ -50,6 +53,30 @@ def _positive_focal(focal) -> float:
     if not (math.isfinite(value) and value > 0):
         raise ValueError(f"focal must be a positive focal length in pixels, got {focal!r}")
     return value
+
+
+def _check_camera(
+    focal, principal_point, orthographic: bool = True
+) -> Tuple[Optional[float], Optional[Tuple[float, float]]]:
+    """The camera arguments of a public function, checked and as floats.
+
+    ``focal``: a finite positive number, or ``None`` (orthographic) where ``orthographic``
+    allows it; ``principal_point``: ``None`` or two finite numbers ``(cx, cy)``.
+
+    Raises:
+        ValueError: naming ``focal`` or ``principal_point`` and showing what came.
+    """
+    if focal is not None or not orthographic:
+        focal = _positive_focal(focal)
+    if principal_point is not None:
+        try:
+            point = () if isinstance(principal_point, (str, bytes)) else tuple(float(c) for c in principal_point)
+        except (TypeError, ValueError):
+            point = ()
+        if len(point) != 2 or not all(math.isfinite(c) for c in point):
+            raise ValueError(f"principal_point must be two finite numbers (cx, cy) in pixels, got {principal_point!r}")
+        principal_point = point
+    return focal, principal_point
 
 
 def pixel_grid(
@@ -96,8 +123,7 @@ def perspective_rotation(u: Tensor, v: Tensor, focal: float) -> Tensor:
     Returns:
         rotation matrices of shape :math:`(*, 3, 3)`.
     """
-    if not focal > 0:
-        raise ValueError(f"focal must be a positive focal length in pixels, got {focal}")
+    focal = _positive_focal(focal)
     phi = torch.atan(u / focal)
     theta = torch.atan(v / torch.sqrt(u * u + focal * focal))
     cp, sp, ct, st = torch.cos(phi), torch.sin(phi), torch.cos(theta), torch.sin(theta)
@@ -123,11 +149,12 @@ def rotate_normals_to_camera(
         frame; zero pixels stay zero.
 
     Raises:
-        ValueError: ``normals`` is not :math:`(B, 3, H, W)` floating point, or ``focal`` is
-            not positive.
+        ValueError: ``normals`` is not :math:`(B, 3, H, W)` floating point, ``focal`` is
+            not a finite positive number or ``principal_point`` not two finite numbers.
     """
     batch, single = to_batch(normals, "normals", 3)
     check_shape(batch, "normals", "B 3 H W")
+    focal, principal_point = _check_camera(focal, principal_point, orthographic=False)
     _, _, h, w = batch.shape
     uv = pixel_grid(h, w, principal_point, device=batch.device, dtype=batch.dtype)
     rot = perspective_rotation(uv[0], uv[1], focal)  # (H, W, 3, 3)
@@ -138,18 +165,27 @@ def centroid_rotation(mask: Tensor, focal: float, principal_point: Optional[Sequ
     """The single rotation of Sec. 8 for each object's centroid on the image plane.
 
     Args:
-        mask: :math:`(B, 1, H, W)` bool.
+        mask: :math:`(B, 1, H, W)`, :math:`(1, H, W)` or :math:`(H, W)`, bool or 0/1, none
+            empty.
+        focal: focal length in pixels.
+        principal_point: ``(cx, cy)``; default image centre.
 
     Returns:
-        :math:`(B, 3, 3)` rotations.
+        :math:`(B, 3, 3)` rotations (:math:`(3, 3)` for an unbatched mask).
+
+    Raises:
+        ValueError: a bad mask (shape, values, empty), ``focal`` or ``principal_point``.
     """
+    mask, single = to_batch(mask, "mask", 1)
+    mask = check_mask(mask, allow_full=True)
+    focal, principal_point = _check_camera(focal, principal_point, orthographic=False)
     _, _, h, w = mask.shape
     uv = pixel_grid(h, w, principal_point, device=mask.device, dtype=torch.float32)
     m = mask[:, 0].float()
-    count = m.flatten(1).sum(1).clamp_min(1)
+    count = m.flatten(1).sum(1)
     u = (uv[0] * m).flatten(1).sum(1) / count
     v = (uv[1] * m).flatten(1).sum(1) / count
-    return perspective_rotation(u, v, focal)
+    return from_batch(perspective_rotation(u, v, focal), single)
 
 
 class CameraRotation(nn.Module):
@@ -174,8 +210,7 @@ class CameraRotation(nn.Module):
 
     def __init__(self, focal: float, principal_point: Optional[Sequence[float]] = None):
         super().__init__()
-        self.focal = _positive_focal(focal)
-        self.principal_point = principal_point
+        self.focal, self.principal_point = _check_camera(focal, principal_point, orthographic=False)
 
     def forward(self, normals: Tensor) -> Tensor:
         return rotate_normals_to_camera(normals, self.focal, self.principal_point)

@@ -40,7 +40,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ._checks import check_finite, check_mask, check_same_size, check_shape, from_batch, is_integer, to_batch
-from .camera import _positive_focal, pixel_grid
+from .camera import _check_camera, pixel_grid
 
 __all__ = [
     "IntegrabilityConfig",
@@ -290,6 +290,9 @@ class _Multigrid:
 
 def _pcg(level: _Level, precond: _Multigrid, b: Tensor, x0: Optional[Tensor], max_iter: int, tol: float) -> Tensor:
     """Batched preconditioned CG for ``level.apply(x) = b``; ``b``: (B, H, W)."""
+    # a residual below the dtype's precision is never reached: CG would iterate on rounding
+    # noise, which blows up instead of converging, until max_iter
+    tol = max(tol, torch.finfo(b.dtype).eps)
     x = torch.zeros_like(b) if x0 is None else x0
     r = b - level.apply(x) if x0 is not None else b.clone()
     bnorm = b.flatten(1).norm(dim=1).clamp_min(torch.finfo(b.dtype).tiny)
@@ -447,7 +450,8 @@ def _surface(s: Tensor, mask: Tensor, focal, principal_point) -> Surface:
     return Surface(depth=depth, normals=depth_to_normals(depth, mask, focal, principal_point))
 
 
-def _check_inputs(normals: Tensor, mask: Tensor, weights: Optional[Tensor], focal, name: str, spec: str) -> Tuple[Tensor, Optional[Tensor]]:
+def _check_inputs(normals: Tensor, mask: Tensor, weights: Optional[Tensor], name: str, spec: str) -> Tuple[Tensor, Optional[Tensor]]:
+    """The bool mask, and the weights in the normals' dtype (which the solve mixes)."""
     check_shape(normals, name, spec)
     check_finite(normals, name)
     mask = check_mask(mask, allow_full=True)
@@ -458,9 +462,14 @@ def _check_inputs(normals: Tensor, mask: Tensor, weights: Optional[Tensor], foca
         check_finite(weights, "weights")
         if bool((weights < 0).any()):
             raise ValueError("weights must be non-negative")
-    if focal is not None and not float(focal) > 0:
-        raise ValueError(f"focal must be a positive focal length in pixels, got {focal}")
+        weights = weights.to(normals.dtype)
     return mask, weights
+
+
+def _working_dtype(x: Tensor) -> Tensor:
+    """``x`` in the dtype the solve runs in: half precision in float32, whose ~1e-3 (float16)
+    or ~1e-2 (bfloat16) relative rounding left the conjugate gradients far from the solution."""
+    return x.float() if x.is_floating_point() and torch.finfo(x.dtype).bits < 32 else x
 
 
 # ----------------------------------------------------------------------------- public API
@@ -497,7 +506,8 @@ def integrate_normals(
         max_iter: conjugate-gradient iterations per solve.
         tol: relative residual of each conjugate-gradient solve.
         min_nz: normals more grazing than this cosine to the view ray are clamped.
-        l1_iter: IRLS rounds of the L1 variant.
+        l1_iter: IRLS rounds of the L1 variant; 0 and 1 both give the plain weighted L2
+            solve (the first round).
         l1_delta: smoothing of the L1 variant.
         conv_options: ``conv_iter``, ``conv_prior`` for ``"conv"``.
 
@@ -506,18 +516,22 @@ def integrate_normals(
         :math:`(B, 3, H, W)` (no batch axis for unbatched input). Differentiable with
         respect to ``normals`` and ``weights`` (implicit differentiation of the linear
         solve; for ``"l1"`` through the last reweighted solve with its weights fixed).
+        Half-precision normals are integrated in float32; the result has their dtype.
+        ``tol`` is floored at the machine epsilon of the working dtype.
 
     Raises:
-        ValueError: unknown method, wrong shapes, non-finite values, negative weights,
-            or a non-positive focal length.
+        ValueError: an option out of range (:func:`check_integrability_config`), wrong
+            shapes, non-finite values, negative weights, or a focal length or principal
+            point that is not finite and positive, or not two finite numbers.
 
     Example:
         >>> n = torch.zeros(1, 3, 8, 8); n[:, 2] = 1.0
         >>> integrate_normals(n, torch.ones(1, 1, 8, 8, dtype=torch.bool)).depth.abs().max()
         tensor(0.)
     """
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    check_integrability_config(IntegrabilityConfig(
+        method=method, max_iter=max_iter, tol=tol, min_nz=min_nz, l1_iter=l1_iter, l1_delta=l1_delta,
+    ))
     if method == "conv":
         return integrate_convex(
             normals, mask, weights=weights, focal=focal, principal_point=principal_point,
@@ -529,7 +543,10 @@ def integrate_normals(
     mask, _ = to_batch(mask, "mask", 1)
     if weights is not None:
         weights, _ = to_batch(weights, "weights", 1)
-    mask, weights = _check_inputs(normals, mask, weights, focal, "normals", "B 3 H W")
+    focal, principal_point = _check_camera(focal, principal_point)
+    dtype = normals.dtype
+    normals = _working_dtype(normals)
+    mask, weights = _check_inputs(normals, mask, weights, "normals", "B 3 H W")
     if mask.device != normals.device:
         raise ValueError(f"mask is on {mask.device} but normals on {normals.device}")
     m = mask[:, 0]
@@ -540,7 +557,8 @@ def integrate_normals(
     w = m.to(normals.dtype) if weights is None else weights[:, 0]
     wx, wy = _edge_weights(w, ex, ey)
     s, coarse = None, None
-    rounds = l1_iter if method == "l1" else 1
+    # the first round is the plain weighted L2 solve, so no IRLS round at all means that one
+    rounds = max(l1_iter, 1) if method == "l1" else 1
     for it in range(rounds):
         ax, ay = wx, wy
         if method == "l1" and s is not None:
@@ -556,8 +574,12 @@ def integrate_normals(
         s = _Solve.apply(tx, ty, ax, ay, problem, x0) if last else problem.solve(
             _dxt(ax * tx.detach()) + _dyt(ay * ty.detach()), x0
         )
-    out = _surface(s, mask, focal, principal_point)
-    return Surface(depth=from_batch(out.depth, single), normals=from_batch(out.normals, single))
+    return _result(_surface(s, mask, focal, principal_point), dtype, single)
+
+
+def _result(out: Surface, dtype: torch.dtype, single: bool) -> Surface:
+    """``out`` in the input's dtype, without the batch axis for unbatched input."""
+    return Surface(depth=from_batch(out.depth.to(dtype), single), normals=from_batch(out.normals.to(dtype), single))
 
 
 def _project_simplex(a: Tensor, dim: int) -> Tensor:
@@ -613,7 +635,14 @@ def integrate_convex(
     Returns:
         :class:`Surface` of the final combination; ``depth`` is differentiable with
         respect to ``candidates`` through the last solve (combination weights fixed).
+        Half precision is computed in float32, as in :func:`integrate_normals`.
+
+    Raises:
+        ValueError: as :func:`integrate_normals`.
     """
+    check_integrability_config(IntegrabilityConfig(
+        method="conv", max_iter=max_iter, tol=tol, min_nz=min_nz, conv_iter=conv_iter, conv_prior=conv_prior,
+    ))
     candidates, single = to_batch(candidates, "candidates", None, ndim_single=4)
     mask, _ = to_batch(mask, "mask", 1)
     if weights is not None:
@@ -621,7 +650,10 @@ def integrate_convex(
     if candidates.ndim != 5 or candidates.shape[2] != 3:
         raise ValueError(f"candidates must have shape (B, S, 3, H, W), got {tuple(candidates.shape)}")
     check_finite(candidates, "candidates")
-    mask, weights = _check_inputs(candidates[:, 0], mask, weights, focal, "candidates", "B 3 H W")
+    focal, principal_point = _check_camera(focal, principal_point)
+    dtype = candidates.dtype
+    candidates = _working_dtype(candidates)
+    mask, weights = _check_inputs(candidates[:, 0], mask, weights, "candidates", "B 3 H W")
     m = mask[:, 0]
     labels = mask_components(mask)[:, 0]
     ex, ey = _edge_masks(m)
@@ -656,8 +688,7 @@ def integrate_convex(
         alpha, momentum = new, next_momentum
     tx, ty = _edge_targets((alpha * gu).sum(1), (alpha * gv).sum(1), ex, ey)
     s = _Solve.apply(tx, ty, wx, wy, problem, s)
-    out = _surface(s, mask, focal, principal_point)
-    return Surface(depth=from_batch(out.depth, single), normals=from_batch(out.normals, single))
+    return _result(_surface(s, mask, focal, principal_point), dtype, single)
 
 
 def _derivative(s: Tensor, m: Tensor, dim: int) -> Tensor:
@@ -718,12 +749,11 @@ def depth_to_normals(
     check_shape(depth, "depth", "B 1 H W")
     mask = check_mask(mask, allow_full=True)
     check_same_size(depth, "depth", mask, "mask")
+    focal, principal_point = _check_camera(focal, principal_point)
     m = mask[:, 0]
     if focal is None:
         s = torch.where(m, depth[:, 0], 0.0)
     else:
-        if not float(focal) > 0:
-            raise ValueError(f"focal must be a positive focal length in pixels, got {focal}")
         if bool((depth[:, 0][m] <= 0).any()):
             raise ValueError("depth must be positive on the mask under perspective projection")
         s = torch.where(m, torch.log(torch.where(m, depth[:, 0], 1.0)), 0.0)
@@ -832,6 +862,7 @@ def depth_to_mesh(
     if d is None or mk is None or d.shape != mk.shape:
         raise ValueError(f"depth and mask must be one (H, W) or (1, H, W) map each, got {tuple(depth.shape)} and {tuple(mask.shape)}")
     mk = check_mask(mk[None, None], allow_full=True)[0, 0]
+    focal, principal_point = _check_camera(focal, principal_point)
     h, w = d.shape
     d = d.detach().to("cpu", torch.float64)
     mk = mk.cpu()
@@ -839,8 +870,6 @@ def depth_to_mesh(
     if focal is None:
         verts = torch.stack([u, v, d], -1)
     else:
-        if not float(focal) > 0:
-            raise ValueError(f"focal must be a positive focal length in pixels, got {focal}")
         verts = d[..., None] * torch.stack([u / focal, v / focal, -torch.ones_like(u)], -1)
     index = torch.full((h, w), -1, dtype=torch.long)
     index[mk] = torch.arange(int(mk.sum()))
@@ -865,7 +894,8 @@ class Integrator(nn.Module):
     :math:`(B, S, 3, H, W)` candidates when ``method="conv"``.
 
     Raises:
-        ValueError: an option out of range, named (:func:`check_integrability_config`).
+        ValueError: an option out of range, named (:func:`check_integrability_config`), or
+            a bad ``focal`` or ``principal_point``.
     """
 
     def __init__(
@@ -890,7 +920,7 @@ class Integrator(nn.Module):
         self.method, self.max_iter, self.tol, self.min_nz = method, max_iter, tol, min_nz
         self.l1_iter, self.l1_delta = l1_iter, l1_delta
         self.conv_iter, self.conv_prior = conv_iter, conv_prior
-        self.focal, self.principal_point = focal, principal_point
+        self.focal, self.principal_point = _check_camera(focal, principal_point)
 
     def forward(self, normals: Tensor, mask: Tensor, weights: Optional[Tensor] = None) -> Surface:
         common = dict(weights=weights, focal=self.focal, principal_point=self.principal_point,
@@ -923,8 +953,7 @@ class DepthToNormals(nn.Module):
 
     def __init__(self, focal: Optional[float] = None, principal_point: Optional[Sequence[float]] = None):
         super().__init__()
-        self.focal = None if focal is None else _positive_focal(focal)
-        self.principal_point = principal_point
+        self.focal, self.principal_point = _check_camera(focal, principal_point)
 
     def forward(self, depth: Tensor, mask: Tensor) -> Tensor:
         return depth_to_normals(depth, mask, self.focal, self.principal_point)

@@ -26,7 +26,6 @@
 from __future__ import annotations
 
 import logging
-import math
 import time
 import warnings
 from contextlib import contextmanager
@@ -40,7 +39,7 @@ from omegaconf.errors import OmegaConfBaseException
 from torch import Tensor
 
 from ._checks import check_finite, check_mask, check_same_size, is_integer, is_number, to_batch
-from .camera import CameraConfig, _positive_focal, centroid_rotation, rotate_normals_to_camera
+from .camera import CameraConfig, _check_camera, _positive_focal, centroid_rotation, rotate_normals_to_camera
 from .denoise import DenoiseConfig, check_denoise_config, denoise_image
 from .forest import VMF, ForestConfig, VMFForest, sample_vmf
 from .forest_cache import CACHE_POLICIES, evict_forests, forest_path, load_forest, save_forest
@@ -1068,12 +1067,7 @@ def _check_focal(focal: Any) -> Optional[float]:
 def _check_principal_point(principal_point: Any, focal: Optional[float], warn: bool = True) -> Optional[tuple]:
     if principal_point is None:
         return None
-    try:
-        values = tuple(float(c) for c in principal_point)
-    except (TypeError, ValueError):
-        values = ()
-    if len(values) != 2 or not all(math.isfinite(v) for v in values):
-        raise ValueError(f"principal_point must be two finite numbers (cx, cy) in pixels, got {principal_point!r}")
+    _, values = _check_camera(None, principal_point)
     if focal is None and warn:
         warnings.warn("principal_point is ignored without a focal length (the camera is orthographic)", stacklevel=3)
     return values

@@ -72,6 +72,39 @@ class TestRotateNormalsToCamera:
         rot = centroid_rotation(mask, 10.0)
         assert torch.allclose(rot, perspective_rotation(torch.tensor([4.0]), torch.tensor([4.0]), 10.0))
 
+    def test_centroid_rotation_mask_forms(self):
+        mask = torch.zeros(1, 1, 9, 9, dtype=torch.bool)
+        mask[0, 0, 2:4, 5:8] = True
+        rot = centroid_rotation(mask, 10.0)
+        assert torch.equal(centroid_rotation(mask[0], 10.0), rot[0])  # (1, H, W): one (3, 3)
+        assert torch.equal(centroid_rotation(mask[0, 0].float(), 10.0), rot[0])  # (H, W), 0/1
+
+    @pytest.mark.parametrize("mask, message", [
+        (torch.zeros(1, 1, 9, 9, dtype=torch.bool), r"^mask is empty"),
+        (torch.ones(1, 3, 9, 9), r"^mask must have shape \(B, 1, H, W\), got \(1, 3, 9, 9\)"),
+        (torch.full((1, 1, 9, 9), 0.5), r"^mask must be boolean or hold only 0 and 1"),
+    ])
+    def test_centroid_rotation_checks_the_mask(self, mask, message):
+        with pytest.raises(ValueError, match=message):
+            centroid_rotation(mask, 10.0)
+
+    @pytest.mark.parametrize("focal, principal_point, message", [
+        ("50", None, r"^focal must be a positive focal length in pixels, got '50'$"),
+        (float("inf"), None, r"^focal must be a positive focal length in pixels, got inf$"),
+        (None, None, r"^focal must be a positive focal length in pixels, got None$"),
+        (50.0, (float("nan"), 3.0), r"^principal_point must be two finite numbers \(cx, cy\) in pixels, got \(nan, 3.0\)$"),
+        (50.0, (3.0,), r"^principal_point must be two finite numbers \(cx, cy\) in pixels, got \(3.0,\)$"),
+        (50.0, "12", r"^principal_point must be two finite numbers"),
+    ])
+    def test_camera_is_checked(self, focal, principal_point, message):
+        n = random_normals(1, 4, 4)
+        mask = torch.ones(1, 1, 4, 4, dtype=torch.bool)
+        for call in (lambda: rotate_normals_to_camera(n, focal, principal_point),
+                     lambda: centroid_rotation(mask, focal, principal_point),
+                     lambda: CameraRotation(focal, principal_point)):
+            with pytest.raises(ValueError, match=message):
+                call()
+
 
 class TestCameraRotation:
     def test_smoke(self, device, dtype):

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from scenes import sphere
 
 from sfs_torch.camera import pixel_grid
 from sfs_torch.integrability import (
@@ -183,6 +184,50 @@ class TestIntegrateL2:
         with pytest.raises(ValueError, match="unknown options"):
             integrate_normals(n, mask, conv_iter=3)
 
+    def test_tol_below_the_dtype_precision(self):
+        # float32 cannot reach a residual of 1e-9: CG used to iterate on rounding noise and
+        # return a depth off by thousands; the tolerance is floored at float32's epsilon
+        n, m = sphere()
+        default = integrate_normals(n[None], m[None]).depth
+        tight = integrate_normals(n[None], m[None], tol=1e-9).depth
+        assert float((tight - default).abs().max()) < 1e-3
+
+    @pytest.mark.parametrize("dtype, bound", [(torch.float16, 0.02), (torch.bfloat16, 0.1)])
+    def test_half_precision(self, dtype, bound):
+        # half-precision normals are integrated in float32 (the depth was off by 5.3)
+        n, m = sphere()
+        expected = integrate_normals(n[None], m[None]).depth
+        out = integrate_normals(n[None].to(dtype), m[None])
+        assert out.depth.dtype == out.normals.dtype == dtype
+        assert float((out.depth.float() - expected).abs().max()) < bound  # depth spans 0..26 pixels
+        conv = integrate_convex(n[None, None].to(dtype), m[None], conv_iter=2)
+        assert conv.depth.dtype == dtype and float((conv.depth.float() - expected).abs().max()) < bound
+
+    def test_weights_take_the_normals_dtype(self):
+        n, m = sphere()
+        normals = n[None].double()
+        out = integrate_normals(normals, m[None], weights=torch.ones(1, 1, *m.shape[-2:]))  # float32 weights
+        assert out.depth.dtype == torch.float64
+        assert torch.equal(out.depth, integrate_normals(normals, m[None]).depth)
+
+    @pytest.mark.parametrize("camera, message", [
+        ({"focal": float("inf")}, r"^focal must be a positive focal length in pixels, got inf$"),
+        ({"focal": "50"}, r"^focal must be a positive focal length in pixels, got '50'$"),
+        ({"focal": 50.0, "principal_point": (float("nan"), 3.0)}, r"^principal_point must be two finite numbers"),
+        ({"focal": 50.0, "principal_point": (3.0,)}, r"^principal_point must be two finite numbers"),
+    ])
+    def test_camera_is_checked(self, camera, message):
+        n, m = sphere()
+        depth = torch.ones(1, 1, *m.shape[-2:])
+        for call in (lambda: integrate_normals(n[None], m[None], **camera),
+                     lambda: integrate_convex(n[None, None], m[None], **camera),
+                     lambda: depth_to_normals(depth, m[None], **camera),
+                     lambda: depth_to_mesh(depth[0], m, **camera),
+                     lambda: DepthToNormals(**camera),
+                     lambda: Integrator(**camera)):
+            with pytest.raises(ValueError, match=message):
+                call()
+
     @pytest.mark.parametrize("focal", [None, 10.0])
     def test_gradcheck(self, focal):
         g = torch.Generator().manual_seed(0)
@@ -258,6 +303,21 @@ class TestCheckIntegrabilityConfig:
     def test_valid(self):
         for method in ("l2", "l1", "conv"):
             check_integrability_config(IntegrabilityConfig(method=method, l1_iter=0, conv_iter=0, conv_prior=0.0))
+
+    @pytest.mark.parametrize("function, options, message", [
+        (integrate_normals, {"tol": 0.0}, r"^tol must be > 0, got 0.0$"),
+        (integrate_normals, {"max_iter": 0}, r"^max_iter must be an integer >= 1, got 0$"),
+        (integrate_normals, {"min_nz": 0.0}, r"^min_nz must be in \(0, 1\), got 0.0$"),
+        (integrate_normals, {"method": "l1", "l1_delta": 0.0}, r"^l1_delta must be > 0, got 0.0$"),
+        (integrate_convex, {"tol": 0.0}, r"^tol must be > 0, got 0.0$"),
+        (integrate_convex, {"max_iter": 0}, r"^max_iter must be an integer >= 1, got 0$"),
+        (integrate_convex, {"conv_prior": -1.0}, r"^conv_prior must be >= 0, got -1.0$"),
+    ])
+    def test_the_functions_check_their_options(self, function, options, message):
+        # max_iter=0 returned an all-zero depth, min_nz=0 or l1_delta=0 a FloatingPointError
+        z, n, mask = _batch(*gaussian_bump(16))
+        with pytest.raises(ValueError, match=message):
+            function(n[:, None] if function is integrate_convex else n, mask, **options)
 
     def test_the_module_checks_its_arguments(self):
         with pytest.raises(ValueError, match=r"^tol must be > 0, got 0.0$"):
@@ -343,6 +403,12 @@ class TestIntegrateL1:
         l2 = depth_rmse(integrate_normals(noisy, mask).depth, z[0, 0], mask)
         l1 = depth_rmse(integrate_normals(noisy, mask, method="l1").depth, z[0, 0], mask)
         assert l1 < 0.3 * l2
+
+    @pytest.mark.parametrize("l1_iter", [0, 1])
+    def test_no_reweighting_is_l2(self, l1_iter):
+        # the first IRLS round is the weighted L2 solve; l1_iter=0 used to crash
+        z, n, mask = _batch(*gaussian_bump(32))
+        assert torch.equal(Integrator(method="l1", l1_iter=l1_iter)(n, mask).depth, integrate_normals(n, mask).depth)
 
     def test_crease(self):
         z, n, mask = _batch(*crease(48))
