@@ -118,7 +118,8 @@ def normal_metrics(est: Tensor, gt: Tensor, mask: Tensor) -> NormalMetrics:
 
     The median of an even number of errors is the mean of the two middle values (as
     ``numpy.median``). Shares count errors strictly below each threshold. For nMSE both
-    fields are first scaled to unit length, so it depends on the angle alone.
+    fields are first scaled to unit length, so it depends on the angle alone. Sums over
+    half-precision maps are accumulated in float32; the fields keep the input's dtype.
 
     Args:
         est: estimated normals, :math:`(B, 3, H, W)` or :math:`(3, H, W)`.
@@ -140,21 +141,24 @@ def normal_metrics(est: Tensor, gt: Tensor, mask: Tensor) -> NormalMetrics:
     err = _angle_deg(est_b, gt_b, mask_b).flatten(1)
     inside = mask_b.flatten(1)
     count = inside.sum(1)
-    n = count.to(err.dtype)
+    # a float16 sum of errors overflows past 65504 degrees (a few thousand object pixels),
+    # and bfloat16 rounds counts above 256: half precision is summed in float32
+    acc = torch.promote_types(err.dtype, torch.float32)
+    n = count.to(acc)
 
     # Background sorts last, so the object errors fill the first `count` slots.
     ranked = torch.where(inside, err, torch.full_like(err, float("inf"))).sort(1).values
     lower = ranked.gather(1, ((count - 1) // 2)[:, None])[:, 0]
     upper = ranked.gather(1, (count // 2)[:, None])[:, 0]
-    shares = [((err < t) & inside).sum(1).to(err.dtype) / n for t in _THRESHOLDS]
+    shares = [((err < t) & inside).sum(1).to(acc) / n for t in _THRESHOLDS]
 
     unit_est = est_b / est_b.norm(dim=1, keepdim=True).clamp_min(torch.finfo(est_b.dtype).tiny)
     unit_gt = gt_b / gt_b.norm(dim=1, keepdim=True).clamp_min(torch.finfo(gt_b.dtype).tiny)
     sq = ((unit_est - unit_gt) ** 2).sum(1).flatten(1)
-    nmse = torch.where(inside, sq, torch.zeros_like(sq)).sum(1) / n
+    nmse = torch.where(inside, sq, torch.zeros_like(sq)).sum(1, dtype=acc) / n
 
-    values = [(lower + upper) / 2, err.sum(1) / n, *shares, nmse]
-    return NormalMetrics(*(from_batch(v, single) for v in values))
+    values = [(lower + upper) / 2, err.sum(1, dtype=acc) / n, *shares, nmse]
+    return NormalMetrics(*(from_batch(v.to(err.dtype), single) for v in values))
 
 
 def lmse(est_sh: Tensor, gt_sh: Tensor, resolution: int = 64) -> Tensor:

@@ -174,6 +174,17 @@ class TestNormalMetrics:
         one = normal_metrics(est[:1], gt[:1], mask[:1])
         assert one.median.shape == (1,) and isinstance(one.as_dict()["median"], float)
 
+    @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+    def test_half_precision_large_object(self, dtype):
+        # 25600 pixels at 10 degrees sum to 256000, past float16's 65504: the mean was inf
+        gt = _random_normals((3, 160, 160), seed=19)
+        est = _tilted(gt, 10.0)
+        res = normal_metrics(est.to(dtype), gt.to(dtype), torch.ones(160, 160, dtype=torch.bool))
+        assert res.mean.dtype == dtype
+        assert res.mean.item() == pytest.approx(10.0, abs=0.1)
+        assert res.under_11_25.item() == 1.0
+        assert res.nmse.item() == pytest.approx(2 - 2 * math.cos(math.radians(10)), rel=0.05)
+
     def test_frozen(self):
         n = _random_normals((3, 2, 2), seed=17)
         res = normal_metrics(n, n, torch.ones(2, 2, dtype=torch.bool))
