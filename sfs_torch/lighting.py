@@ -60,7 +60,15 @@ def sh_basis_vectors(n: Tensor) -> Tensor:
 
     Returns:
         :math:`(*, 9)` basis values in SPEC order.
+
+    Raises:
+        TypeError: ``n`` is not a tensor.
+        ValueError: its last dimension is not 3.
     """
+    if not isinstance(n, Tensor):
+        raise TypeError(f"n must be a torch.Tensor of shape (*, 3), got {type(n).__name__}")
+    if n.ndim == 0 or n.shape[-1] != 3:
+        raise ValueError(f"n must have shape (*, 3), got {tuple(n.shape)}")
     x, y, z = n.unbind(-1)
     return torch.stack(
         [
@@ -251,7 +259,8 @@ def fit_sh(
         normals: camera-frame unit normals, :math:`(B, 3, H, W)`.
         colours: linear RGB, :math:`(B, 3, H, W)`.
         mask: pixels to use, :math:`(B, 1, H, W)` bool.
-        weights: optional per-pixel weights, :math:`(B, 1, H, W)`, non-negative.
+        weights: optional per-pixel weights, :math:`(B, 1, H, W)`, finite, non-negative
+            and positive somewhere on each batch element's mask.
         nonnegative: optional directions :math:`(M, 3)` where the fitted shading must
             not be negative (see :func:`fit_sh_vectors`).
 
@@ -259,7 +268,8 @@ def fit_sh(
         :math:`(B, 3, 9)` SH coefficients minimising the (weighted) squared shading error.
 
     Raises:
-        ValueError: shapes disagree, or inputs hold NaN/inf.
+        ValueError: shapes disagree, inputs hold NaN/inf, or weights are negative or zero
+            on a whole mask.
     """
     check_shape(normals, "normals", "B 3 H W")
     check_shape(colours, "colours", "B 3 H W")
@@ -274,8 +284,14 @@ def fit_sh(
     if weights is not None:
         check_shape(weights, "weights", "B 1 H W")
         check_same_size(normals, "normals", weights, "weights")
+        check_finite(weights, "weights")
         if bool((weights < 0).any()):
             raise ValueError("weights must be non-negative")
+        # no weighted sample leaves nothing to fit: the normal equations would be all zero
+        empty = ~((weights > 0) & mask).flatten(1).any(1)
+        if bool(empty.any()):
+            which = torch.nonzero(empty).flatten().tolist()
+            raise ValueError(f"weights are zero on the whole mask in batch element(s) {which}")
         w = w * weights.to(normals.dtype)
     return fit_sh_vectors(
         normals.flatten(2).transpose(1, 2), colours.to(normals.dtype).flatten(2).transpose(1, 2), w.flatten(1),

@@ -16,6 +16,7 @@ from sfs_torch.lighting import (
     render_sphere,
     rotate_sh,
     sh_basis,
+    sh_basis_vectors,
     sh_to_matrix,
     sphere_normals,
 )
@@ -55,6 +56,10 @@ class TestSHBasis:
     def test_exception(self):
         with pytest.raises(ValueError, match="normals"):
             sh_basis(torch.zeros(1, 2, 4, 4))
+        with pytest.raises(ValueError, match=r"^n must have shape \(\*, 3\), got \(5, 4\)$"):
+            sh_basis_vectors(torch.zeros(5, 4))
+        with pytest.raises(TypeError, match=r"^n must be a torch.Tensor"):
+            sh_basis_vectors([0.0, 0.0, 1.0])
 
 
 class TestRenderSH:
@@ -197,6 +202,20 @@ class TestFitSH:
             fit_sh(n, bad, torch.ones(1, 1, 4, 4, dtype=torch.bool))
         with pytest.raises(ValueError, match="weights"):
             fit_sh(n, n, torch.ones(1, 1, 4, 4, dtype=torch.bool), -torch.ones(1, 1, 4, 4, dtype=torch.float64))
+
+    def test_weights_are_checked(self):
+        # NaN weights, or weights zero on the whole mask, gave an all-NaN lighting
+        n = random_normals(2, 4, 4)
+        mask = torch.zeros(2, 1, 4, 4, dtype=torch.bool)
+        mask[:, :, :2] = True
+        weights = torch.ones(2, 1, 4, 4, dtype=torch.float64)
+        weights[0, 0, 0, 0] = float("nan")
+        with pytest.raises(ValueError, match=r"^weights contains 1 NaN or infinite values$"):
+            fit_sh(n, n, mask, weights)
+        weights = (~mask).double()  # positive only off the mask
+        weights[0, 0, 0, 0] = 1.0
+        with pytest.raises(ValueError, match=r"^weights are zero on the whole mask in batch element\(s\) \[1\]$"):
+            fit_sh(n, n, mask, weights)
 
 
 class TestConversions:
