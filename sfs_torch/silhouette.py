@@ -122,7 +122,10 @@ def _checked_config(config: Optional[SilhouetteConfig]) -> SilhouetteConfig:
 def _mask_argument(mask: Tensor, name: str, allow_empty: bool) -> Tuple[Tensor, bool]:
     mask, single = to_batch(mask, name, 1)
     # a distance transform is defined for empty and full masks alike
-    return check_mask(mask, name, allow_full=allow_empty, allow_empty=allow_empty), single
+    mask = check_mask(mask, name, allow_full=allow_empty, allow_empty=allow_empty)
+    # the maps built from it keep its strides and are written through flat views, which a
+    # transposed or sliced mask would break
+    return mask.contiguous(), single
 
 
 def _lower_envelope(f: Tensor, max_site: int) -> Tuple[Tensor, Tensor]:

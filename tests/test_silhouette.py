@@ -278,6 +278,12 @@ class TestMedialAxis:
         assert change(unpruned) > 0.2
         assert change(SilhouetteConfig(depth_layer_ratio=math.inf)) > 0.03
 
+    def test_transposed_mask(self):
+        m = torch.zeros(1, 1, 40, 100, dtype=torch.bool)
+        m[..., 10:31, 10:91] = True
+        m[..., 5:12, 30:40] = True
+        torch.testing.assert_close(medial_axis(m.transpose(-1, -2)), medial_axis(m).transpose(-1, -2))
+
     def test_exception(self):
         with pytest.raises(ValueError, match="empty"):
             medial_axis(torch.zeros(1, 1, 5, 5, dtype=torch.bool))
@@ -321,6 +327,16 @@ class TestSilhouetteDistances:
         # the border is no contour: along the cut the contour lies below / to the right
         assert float(dist.d_boundary[0, 0, 0, 5]) > 20
 
+    def test_transposed_mask(self):
+        m = torch.zeros(1, 1, 40, 100, dtype=torch.bool)
+        m[..., 10:31, 10:91] = True
+        m[..., 5:12, 30:40] = True
+        transposed, dist = silhouette_distances(m.transpose(-1, -2)), silhouette_distances(m)
+        for field in ("d_boundary", "d_medial", "d_rel", "medial"):
+            torch.testing.assert_close(getattr(transposed, field), getattr(dist, field).transpose(-1, -2))
+        # beta is not compared: transposing flips its axes, and on the medial axis it
+        # comes from a nearest contour pixel whose ties resolve by scan order
+
     def test_dtype_device(self, device):
         m = torch.zeros(2, 1, 20, 30, dtype=torch.bool, device=device)
         m[0, 0, 3:15, 4:20] = True
@@ -350,6 +366,12 @@ class TestSilhouetteFeatures:
             torch.testing.assert_close(batched[b], silhouette_features(m[b]))  # (1, H, W)
             torch.testing.assert_close(batched[b], silhouette_features(m[b, 0]))  # (H, W)
 
+    def test_transposed_mask(self):
+        m = torch.zeros(1, 1, 24, 32, dtype=torch.bool)
+        m[0, 0, 2:20, 3:15] = True
+        t = m.transpose(-1, -2)
+        torch.testing.assert_close(silhouette_features(t), silhouette_features(t.contiguous()))
+
     def test_exception(self):
         with pytest.raises(ValueError, match="mask"):
             silhouette_features(torch.zeros(1, 2, 5, 5, dtype=torch.bool))
@@ -377,6 +399,11 @@ class TestCoarseNormals:
         persp = coarse_normals(m, focal=80.0, principal_point=(30.0, 34.0))
         torch.testing.assert_close(persp, rotate_normals_to_camera(ortho, 80.0, (30.0, 34.0)))
         assert not torch.allclose(persp, ortho)
+
+    def test_transposed_mask(self):
+        mask, _, _ = disk(40, 12.0, centre=(15.0, 22.0))
+        t = torch.from_numpy(mask)[None, None].transpose(-1, -2)
+        torch.testing.assert_close(coarse_normals(t), coarse_normals(t.contiguous()))
 
     def test_unbatched(self):
         mask, _, _ = disk(40, 12.0)
