@@ -96,7 +96,10 @@ def denoise_image(image: Tensor, mask: Tensor, sigma: float = DenoiseConfig.sigm
         return image
     size = 2 * math.ceil(3 * sigma) + 1
     weight = mask.to(image.dtype)
-    blurred = gaussian_blur2d(torch.cat([image * weight, weight], 1), size, (float(sigma), float(sigma)),
+    # selected, not multiplied by the mask: NaN or inf in the background times 0 is NaN,
+    # which the blur would carry into the object
+    inside = torch.where(mask, image, 0.0)
+    blurred = gaussian_blur2d(torch.cat([inside, weight], 1), size, (float(sigma), float(sigma)),
                               border_type="constant")
     total, covered = blurred[:, :-1], blurred[:, -1:]
     return torch.where(mask, total / covered.clamp_min(torch.finfo(image.dtype).tiny), image)

@@ -56,6 +56,14 @@ class TestDenoiseImage:
         assert torch.equal(out[..., ~mask[0, 0]], image[..., ~mask[0, 0]])
         assert denoise_image(image, mask, 0) is image
 
+    @pytest.mark.parametrize("background", [float("nan"), float("inf")])
+    def test_non_finite_background_does_not_reach_the_object(self, background):
+        mask = square()
+        image = torch.rand(1, 3, 48, 48, generator=torch.Generator().manual_seed(5)) * mask
+        out = denoise_image(image.masked_fill(~mask, background), mask, 1.0)
+        torch.testing.assert_close(out[..., mask[0, 0]], denoise_image(image, mask, 1.0)[..., mask[0, 0]],
+                                   rtol=0, atol=0)
+
     def test_batch_equals_single(self):
         masks = torch.cat([square(), square(margin=12)])
         images = torch.rand(2, 3, 48, 48, generator=torch.Generator().manual_seed(2)) * masks
