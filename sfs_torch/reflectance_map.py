@@ -84,6 +84,25 @@ def check_reflectance_map_config(cfg: ReflectanceMapConfig) -> None:
         raise ValueError(f"knn_fraction must be in (0, 1], got {cfg.knn_fraction!r}")
 
 
+def _checked_config(config: Union[None, ReflectanceMapConfig, Mapping]) -> ReflectanceMapConfig:
+    """A ``config`` argument as a checked :class:`ReflectanceMapConfig`: ``None`` gives the
+    defaults, a mapping its fields; a bad option is named as ``config.<key>``."""
+    if config is None:
+        return ReflectanceMapConfig()
+    if isinstance(config, Mapping):
+        try:
+            config = ReflectanceMapConfig(**config)
+        except TypeError as err:
+            raise ValueError(f"config does not fit ReflectanceMapConfig: {err}") from None
+    elif not isinstance(config, ReflectanceMapConfig):
+        raise TypeError(f"config must be a ReflectanceMapConfig, a mapping or None, got {type(config).__name__}")
+    try:
+        check_reflectance_map_config(config)
+    except ValueError as err:
+        raise ValueError(f"config.{err}") from None
+    return config
+
+
 def hemisphere_directions(n: int, *, device=None, dtype=torch.float32) -> Tensor:
     """``n`` nearly uniform directions on the visible hemisphere ``z > 0`` (Fibonacci lattice).
 
@@ -135,7 +154,7 @@ def estimate_lighting(
     *,
     focal: Optional[float] = None,
     principal_point: Optional[Sequence[float]] = None,
-    config: Optional[ReflectanceMapConfig] = None,
+    config: Union[None, ReflectanceMapConfig, Mapping] = None,
     silhouette: Optional[SilhouetteConfig] = None,
 ) -> Tensor:
     """Estimate SH lighting from one image and its silhouette (paper Sec. 7; Sec. 8 with ``focal``).
@@ -146,14 +165,15 @@ def estimate_lighting(
         focal: focal length in pixels; the hemisphere is then rotated by the rotation
             for the object's centroid (Sec. 8).
         principal_point: ``(cx, cy)``; default image centre.
-        config: options, see :class:`ReflectanceMapConfig`.
+        config: a :class:`ReflectanceMapConfig`, a mapping of its fields, or ``None`` for
+            the defaults; checked (:func:`check_reflectance_map_config`).
         silhouette: options of the silhouette features the pixels are mapped by;
             default :class:`~sfs_torch.silhouette.SilhouetteConfig`.
 
     Returns:
         :math:`(B, 3, 9)` SH lighting in the camera frame.
     """
-    cfg = config or ReflectanceMapConfig()
+    cfg = _checked_config(config)
     check_shape(image, "image", "B 3 H W")
     mask = check_mask(mask)
     check_same_size(image, "image", mask, "mask")
@@ -195,14 +215,30 @@ def refit_lighting(image: Tensor, mask: Tensor, normals: Tensor, *, valid: bool 
     Args:
         image: linear RGB, :math:`(B, 3, H, W)`.
         mask: object pixels, :math:`(B, 1, H, W)` bool.
-        normals: camera-frame unit normals, :math:`(B, 3, H, W)`, e.g. predicted ones.
+        normals: camera-frame unit normals, :math:`(B, 3, H, W)`, e.g. predicted ones;
+            unit length (within 1e-3) on the mask.
 
     Returns:
         :math:`(B, 3, 9)` SH lighting in the camera frame.
+
+    Raises:
+        ValueError: bad shapes, an empty or full mask, NaN or inf, or normals that are
+            not unit vectors on the mask.
     """
     check_shape(image, "image", "B 3 H W")
+    check_shape(normals, "normals", "B 3 H W")
     mask = check_mask(mask)
     check_same_size(image, "image", mask, "mask")
+    check_same_size(image, "image", normals, "normals")
+    check_finite(image, "image")
+    check_finite(normals, "normals")
+    # an image passed as normals (the two swapped) fits just as well, to a wrong lighting
+    squared = normals.detach().square().sum(1, keepdim=True)[mask]
+    if bool(((squared > (1.0 + 1e-3) ** 2) | (squared < (1.0 - 1e-3) ** 2)).any()):
+        raise ValueError(
+            f"normals must be unit vectors (|n| = 1 within 1e-3) on the mask, got |n| from "
+            f"{float(squared.min().sqrt()):.4g} to {float(squared.max().sqrt()):.4g}"
+        )
     unclipped = mask & ((image > 0) & (image < 1)).all(1, keepdim=True)
     usable = unclipped.flatten(1).any(1)[:, None, None, None]
     hemisphere = hemisphere_directions(VALIDITY_DIRECTIONS, device=image.device, dtype=torch.float64) if valid else None
@@ -255,20 +291,7 @@ class LightingEstimator(nn.Module):
         silhouette: Optional[SilhouetteConfig] = None,
     ):
         super().__init__()
-        if config is None:
-            config = ReflectanceMapConfig()
-        elif isinstance(config, Mapping):
-            try:
-                config = ReflectanceMapConfig(**config)
-            except TypeError as err:
-                raise ValueError(f"config does not fit ReflectanceMapConfig: {err}") from None
-        elif not isinstance(config, ReflectanceMapConfig):
-            raise TypeError(f"config must be a ReflectanceMapConfig, a mapping or None, got {type(config).__name__}")
-        try:
-            check_reflectance_map_config(config)
-        except ValueError as err:
-            raise ValueError(f"config.{err}") from None
-        self.config = config
+        self.config = _checked_config(config)
         self.focal = None if focal is None else _positive_focal(focal)
         self.principal_point = principal_point
         self.silhouette = silhouette

@@ -89,6 +89,25 @@ class TestEstimateLighting:
         with pytest.raises(ValueError, match="image contains"):
             estimate_lighting(bad, mask)
 
+    @pytest.mark.parametrize("config, error, match", [
+        (ReflectanceMapConfig(knn_fraction=0.0, min_k=0), ValueError, r"config\.min_k must be an integer >= 1, got 0"),
+        (ReflectanceMapConfig(n_directions=4), ValueError, r"config\.n_directions must be an integer >= 9, got 4"),
+        (ReflectanceMapConfig(max_pixels=0), ValueError, r"config\.max_pixels must be an integer >= 1, got 0"),
+        ({"n_direction": 10}, ValueError, "config does not fit ReflectanceMapConfig"),
+        ("sphere", TypeError, "config must be a ReflectanceMapConfig, a mapping or None, got str"),
+    ])
+    def test_config_is_checked(self, config, error, match):
+        _, mask = sphere_image(32, 10.0)
+        with pytest.raises(error, match=match):
+            estimate_lighting(torch.zeros(1, 3, 32, 32), mask, config=config)
+
+    def test_mapping_config_equals_dataclass(self):
+        normals, mask = sphere_image(32, 10.0)
+        image = (render_sh(normals, natural_lightings(0.7)["grace_cathedral"][None]) * mask).clamp(0, 1)
+        options = {"profile": "linear", "n_directions": 40}
+        assert torch.equal(estimate_lighting(image, mask, config=options),
+                           estimate_lighting(image, mask, config=ReflectanceMapConfig(**options)))
+
 
 class TestRefitLighting:
     def test_true_normals_recover_lighting_despite_clipping(self):
@@ -123,6 +142,25 @@ class TestRefitLighting:
         normals, mask = sphere_image(32, 12.0)
         with pytest.raises(ValueError, match="mask"):
             refit_lighting(torch.zeros(1, 3, 32, 32), torch.zeros_like(mask), normals)
+
+    def test_swapped_or_non_unit_normals(self):
+        normals, mask = sphere_image(32, 12.0)
+        image = (render_sh(normals, natural_lightings(0.7)["grace_cathedral"][None]) * mask).clamp(0, 1)
+        with pytest.raises(ValueError, match=r"normals must be unit vectors \(\|n\| = 1 within 1e-3\) on the mask"):
+            refit_lighting(normals, mask, image)  # image and normals swapped
+        with pytest.raises(ValueError, match=r"normals must be unit vectors.*got \|n\| from 1\.1 to 1\.1"):
+            refit_lighting(image, mask, 1.1 * normals)
+        refit_lighting(image, mask, normals)  # only the mask's pixels count: zero normals outside it are fine
+
+    def test_errors_name_image_and_normals(self):
+        normals, mask = sphere_image(32, 12.0)
+        image = (render_sh(normals, natural_lightings(0.7)["grace_cathedral"][None]) * mask).clamp(0, 1)
+        bad = image.clone()
+        bad[0, 0, 16, 16] = float("nan")
+        with pytest.raises(ValueError, match="image contains 1 NaN"):
+            refit_lighting(bad, mask, normals)
+        with pytest.raises(ValueError, match="image and normals must have the same batch size"):
+            refit_lighting(image, mask, normals[..., :16])
 
 
 def lit_spheres(batch, size=32, radius=12.0, dtype=torch.float32):
