@@ -29,7 +29,7 @@ import torch.nn.functional as F
 import trimesh
 from torch import Tensor
 
-from ._checks import check_shape, is_integer
+from ._checks import check_mask, check_same_size, check_shape, is_integer
 from .io import linear_to_srgb, srgb_to_linear
 from .lighting import _BAND_OF_COEFFICIENT, _LAMBERT_OVER_PI, sh_basis_vectors
 
@@ -212,8 +212,15 @@ def estimate_noise_sigma(image: Tensor, mask: Tensor) -> Tensor:
     (``1.4826 / sqrt(20)``). Smooth shading has almost no Laplacian at a few hundred pixels
     across, so what is measured is the noise (sensor noise, quantisation). Exact for
     white Gaussian noise on a locally linear image; 0 for an object with no interior.
+
+    Raises:
+        ValueError: bad shapes, a mask of another size than the image, or a mask with
+            values other than 0 and 1.
     """
     check_shape(image, "image", "B 3 H W")
+    # an empty mask has no interior (0) and a full one is all interior: both are defined
+    mask = check_mask(mask, allow_full=True, allow_empty=True)
+    check_same_size(image, "image", mask, "mask")
     kernel = torch.tensor(_LAPLACIAN, dtype=image.dtype, device=image.device).view(1, 1, 3, 3).repeat(3, 1, 1, 1)
     laplacian = F.conv2d(image, kernel, groups=3).abs()
     interior = (-F.max_pool2d(-mask.to(image.dtype), 5, 1, 2))[..., 1:-1, 1:-1] > 0.5

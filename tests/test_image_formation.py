@@ -149,3 +149,15 @@ class TestNoiseEstimate:
         mask = torch.zeros(1, 1, 16, 16, dtype=torch.bool)
         mask[..., 8, 4:12] = True  # a line: no pixel two pixels inside
         assert float(estimate_noise_sigma(torch.rand(1, 3, 16, 16), mask)[0]) == 0.0
+
+    def test_bad_mask(self):
+        image = torch.rand(2, 3, 16, 16)
+        mask = torch.ones(2, 1, 16, 16, dtype=torch.bool)
+        with pytest.raises(ValueError, match="image and mask must have the same batch size"):
+            estimate_noise_sigma(image, mask[:1])
+        with pytest.raises(ValueError, match="image and mask must have the same batch size"):
+            estimate_noise_sigma(image, mask[..., :8])
+        with pytest.raises(ValueError, match="mask must be boolean or hold only 0 and 1"):
+            estimate_noise_sigma(image, torch.full((2, 1, 16, 16), 0.5))
+        with pytest.raises(ValueError, match=r"mask must have shape \(B, 1, H, W\), got \(2, 3, 16, 16\)"):
+            estimate_noise_sigma(image, mask.expand(-1, 3, -1, -1))
