@@ -148,10 +148,16 @@ def random_camera_rotations(n: int, generator: torch.Generator, *, pitch_deg: fl
 
 
 def normalise_lighting(sh: Tensor) -> Tensor:
-    """Divide each lighting by the root mean square of its coefficients: :math:`(B, 3, 9) -> (B, 3, 9)`."""
+    """Divide each lighting by the root mean square of its coefficients: :math:`(B, 3, 9) -> (B, 3, 9)`.
+
+    A zero lighting stays zero, with a finite gradient (the identity's).
+    """
     check_shape(sh, "sh", "B 3 9")
-    rms = sh.square().mean((1, 2), keepdim=True).sqrt()
-    return sh / rms.clamp_min(torch.finfo(sh.dtype).tiny)
+    mean_square = sh.square().mean((1, 2), keepdim=True)
+    # sqrt's gradient at 0 is infinite, NaN once chained through the zero lighting: a zero
+    # lighting, which has no scale, is divided by 1 instead
+    rms = torch.where(mean_square > 0, mean_square, 1.0).sqrt()
+    return sh / rms
 
 
 def lighting_prior_energy(sh: Tensor, prior: LightingPrior) -> Tensor:
@@ -161,10 +167,11 @@ def lighting_prior_energy(sh: Tensor, prior: LightingPrior) -> Tensor:
 
     Args:
         sh: :math:`(B, 3, 9)`.
-        prior: :class:`LightingPrior` on the device and dtype of ``sh``.
+        prior: :class:`LightingPrior`, used in the device and dtype of ``sh``.
 
     Returns:
         :math:`(B,)`.
     """
+    prior = prior.to(sh.device, sh.dtype)
     d = (normalise_lighting(sh) - prior.mean).flatten(1)
     return 0.5 * torch.einsum("bi,ij,bj->b", d, prior.precision, d) / d.shape[1]

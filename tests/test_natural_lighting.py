@@ -46,6 +46,21 @@ class TestLightingPrior:
         sh = natural_lightings()["grace_cathedral"].double()[None].requires_grad_(True)
         assert torch.autograd.gradcheck(lambda s: lighting_prior_energy(s, prior), (sh,))
 
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+    def test_zero_lighting_has_a_finite_gradient(self, dtype):
+        sh = torch.zeros(1, 3, 9, dtype=dtype, requires_grad=True)
+        lighting_prior_energy(sh, load_lighting_prior(dtype=dtype)).sum().backward()
+        assert bool(torch.isfinite(sh.grad).all())
+        sh.grad = None
+        normalise_lighting(sh).sum().backward()
+        assert torch.equal(sh.grad, torch.ones_like(sh))
+
+    def test_prior_takes_the_dtype_of_sh(self):
+        sh = natural_lightings()["grace_cathedral"][None]
+        energy = lighting_prior_energy(sh.double(), load_lighting_prior())
+        assert energy.dtype == torch.float64
+        torch.testing.assert_close(energy, lighting_prior_energy(sh.double(), load_lighting_prior(dtype=torch.float64)))
+
     def test_impossible_lightings_get_a_finite_high_energy(self):
         prior = load_lighting_prior()
         sh = natural_lightings()["campus_sunset"][None]
