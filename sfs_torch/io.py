@@ -455,9 +455,11 @@ def read_lighting(path: PathLike) -> Tensor:
         raise _bad("path", p, expected, "'sh' rows that are not lists of numbers") from None
     if sh.shape != (3, 9):
         raise _bad("path", p, expected, f"'sh' of shape {sh.shape}")
-    if not np.isfinite(sh).all():
-        raise _bad("path", p, expected, "NaN or infinite coefficients")
-    return torch.from_numpy(sh).to(torch.float32)
+    sh = torch.from_numpy(sh).to(torch.float32)
+    # after the conversion: coefficients beyond float32's range (1e300) become inf there
+    if not bool(torch.isfinite(sh).all()):
+        raise _bad("path", p, expected, "NaN or infinite coefficients (or beyond float32's range)")
+    return sh
 
 
 def write_lighting(path: PathLike, sh: Tensor) -> None:
@@ -601,8 +603,9 @@ def write_mesh(path: PathLike, mesh, *, vertex_normals: Optional[Union[Tensor, n
 
     Raises:
         TypeError: ``mesh`` is not a ``trimesh.Trimesh``.
-        ValueError: an unknown suffix, or ``vertex_normals`` of the wrong shape or with
-            NaN/inf.
+        ValueError: an unknown suffix, a mesh without vertices, ``vertex_normals`` of the
+            wrong shape or with NaN/inf, or (``.glb``) a zero-length normal, as trimesh
+            computes for a vertex no face uses.
     """
     import trimesh
 
@@ -613,6 +616,8 @@ def write_mesh(path: PathLike, mesh, *, vertex_normals: Optional[Union[Tensor, n
     if not isinstance(mesh, trimesh.Trimesh):
         raise TypeError(f"mesh must be a trimesh.Trimesh, got {type(mesh).__name__}")
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    if len(vertices) == 0:
+        raise ValueError("mesh has no vertices: there is nothing to write")
     normals = mesh.vertex_normals if vertex_normals is None else vertex_normals
     if isinstance(normals, Tensor):
         normals = normals.detach().cpu().numpy()
@@ -621,6 +626,12 @@ def write_mesh(path: PathLike, mesh, *, vertex_normals: Optional[Union[Tensor, n
         raise ValueError(f"vertex_normals must have shape {vertices.shape} (one per vertex), got {normals.shape}")
     if not np.isfinite(normals).all():
         raise ValueError(f"vertex_normals contains {int((~np.isfinite(normals)).sum())} NaN or infinite values")
+    # glTF requires unit normals: the exporter scales the others to unit length, but a
+    # zero normal has no direction to scale
+    zero = int((~normals.any(1)).sum())
+    if kind == "glb" and zero:
+        raise ValueError(f"vertex_normals holds {zero} zero-length normals, which glTF (.glb) cannot store: "
+                         "give every vertex a direction")
     # a copy holding the normals: trimesh keeps given normals only until its data change
     copy = trimesh.Trimesh(vertices=vertices, faces=np.asarray(mesh.faces, dtype=np.int64), process=False)
     copy.vertex_normals = normals

@@ -414,7 +414,20 @@ class TestWriteMesh:
         bad[0, 0] = float("nan")
         with pytest.raises(ValueError, match="1 NaN or infinite"):
             io.write_mesh(tmp_path / "m.ply", mesh, vertex_normals=bad)
+        with pytest.raises(ValueError, match="mesh has no vertices"):
+            io.write_mesh(tmp_path / "m.ply", trimesh.Trimesh())
         assert not list(tmp_path.iterdir())
+
+    def test_glb_refuses_zero_normals(self, tmp_path):
+        depth, mask, normals = _hemisphere(8, 4.0)
+        mesh = depth_to_mesh(depth, mask)
+        zero = normals[:, mask].T.clone()
+        zero[:2] = 0
+        with pytest.raises(ValueError, match=r"vertex_normals holds 2 zero-length normals, which glTF \(.glb\)"):
+            io.write_mesh(tmp_path / "m.glb", mesh, vertex_normals=zero)
+        assert not list(tmp_path.iterdir())
+        io.write_mesh(tmp_path / "m.ply", mesh, vertex_normals=zero)  # PLY stores them as they are
+        np.testing.assert_array_equal(_load_mesh(tmp_path / "m.ply").vertex_normals[:2], 0.0)
 
 
 class TestLighting:
@@ -436,6 +449,7 @@ class TestLighting:
             ('{"sh": [[1, 2, 3]]}', r"'sh' of shape \(1, 3\)"),
             ('{"sh": [[1, 2], [3]]}', "not lists of numbers"),
             ('{"sh": ' + json.dumps([[float("nan")] * 9] * 3) + "}", "NaN or infinite"),
+            ('{"sh": ' + json.dumps([[1e300] * 9] * 3) + "}", "beyond float32's range"),  # inf once float32
         ],
     )
     def test_read_exception(self, tmp_path, text, match):
