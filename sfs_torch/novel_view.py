@@ -17,7 +17,7 @@ import torch
 import trimesh
 from torch import Tensor
 
-from .preview import render_shaded
+from .preview import _check_mesh_and_lighting, render_shaded
 
 __all__ = ["NovelViewConfig", "view_rotation", "render_novel_view"]
 
@@ -78,13 +78,12 @@ def render_novel_view(
         :math:`(3, R, R)` linear RGB in [0, 1].
 
     Raises:
-        ValueError: a bad lighting, an empty mesh, an unknown renderer, or ``"pyrender"``
-            where no OpenGL context can be made.
+        TypeError: ``mesh`` is not a ``trimesh.Trimesh``: a ``trimesh.Scene`` (what
+            ``trimesh.load`` returns for a ``.glb``) is refused, ``scene.to_mesh()`` is one.
+        ValueError: a bad lighting (NaN or inf included), an empty mesh, an unknown
+            renderer, or ``"pyrender"`` where no OpenGL context can be made.
     """
-    if lighting.shape != (3, 9):
-        raise ValueError(f"lighting must have shape (3, 9), got {tuple(lighting.shape)}")
-    if len(mesh.faces) == 0:
-        raise ValueError("mesh has no faces to render")
+    _check_mesh_and_lighting(mesh, lighting)
     unit = mesh.copy()
     lo, hi = unit.bounds
     unit.apply_translation(-(lo + hi) / 2)

@@ -37,6 +37,7 @@ import torch
 import trimesh
 from torch import Tensor
 
+from ._checks import check_finite
 from .lighting import render_sh, rotate_sh
 from .rendering import _check_view, render_normals
 
@@ -341,6 +342,22 @@ def rasterize_normals(
         return _rasterize(mesh, rot, resolution, focal=focal, distance=distance, scale=scale)
 
 
+def _check_mesh_and_lighting(mesh: trimesh.Trimesh, lighting: Tensor) -> None:
+    """The ``mesh`` and ``lighting`` arguments of :func:`render_shaded` and
+    :func:`sfs_torch.novel_view.render_novel_view`."""
+    if not isinstance(lighting, Tensor) or tuple(lighting.shape) != (3, 9):
+        got = tuple(lighting.shape) if isinstance(lighting, Tensor) else type(lighting).__name__
+        raise ValueError(f"lighting must be a (3, 9) tensor, got {got}")
+    # NaN or inf would shade every pixel NaN
+    check_finite(lighting, "lighting")
+    if not isinstance(mesh, trimesh.Trimesh):
+        # trimesh.load returns a Scene for .glb files, the format write_mesh writes
+        raise TypeError(f"mesh must be a trimesh.Trimesh, got {type(mesh).__name__} (for a trimesh.Scene, pass "
+                        "scene.to_mesh() or load the file with trimesh.load_mesh)")
+    if len(mesh.faces) == 0:
+        raise ValueError("mesh has no faces to render")
+
+
 def render_shaded(
     mesh: trimesh.Trimesh,
     lighting: Tensor,
@@ -371,7 +388,9 @@ def render_shaded(
         :class:`ShadedView`; ``renderer`` names the renderer that drew it.
 
     Raises:
-        ValueError: bad arguments, an unknown renderer, or ``"pyrender"`` without a context.
+        TypeError: ``mesh`` is not a ``trimesh.Trimesh`` (a ``trimesh.Scene`` included).
+        ValueError: bad arguments (NaN or inf in ``lighting`` included), an unknown
+            renderer, or ``"pyrender"`` without a context.
 
     Example:
         >>> from sfs_torch.lighting import natural_lightings
@@ -380,12 +399,8 @@ def render_shaded(
         >>> view.image.shape, view.renderer, bool(view.mask[0, 16, 16])
         (torch.Size([3, 32, 32]), 'embree', True)
     """
-    if not isinstance(lighting, Tensor) or tuple(lighting.shape) != (3, 9):
-        got = tuple(lighting.shape) if isinstance(lighting, Tensor) else type(lighting).__name__
-        raise ValueError(f"lighting must be a (3, 9) tensor, got {got}")
+    _check_mesh_and_lighting(mesh, lighting)
     rot, distance = _check_view(rotation, resolution, focal, distance, scale)
-    if len(mesh.faces) == 0:
-        raise ValueError("mesh has no faces to render")
     name = choose_renderer(renderer).name
     if name == "pyrender":
         view = rasterize_normals(mesh, rot, resolution, focal=focal, distance=distance, scale=scale)

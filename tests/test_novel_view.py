@@ -1,6 +1,7 @@
 
 import pytest
 import torch
+import trimesh
 
 from sfs_torch.integrability import depth_to_mesh
 from sfs_torch.lighting import natural_lightings, render_sh
@@ -46,3 +47,20 @@ class TestRenderNovelView:
         depth, mask = hemisphere_depth(16, 6.0)
         with pytest.raises(ValueError, match="lighting"):
             render_novel_view(depth_to_mesh(depth, mask), torch.zeros(9))
+
+    @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+    def test_non_finite_lighting(self, bad):
+        depth, mask = hemisphere_depth(16, 6.0)
+        sh = natural_lightings(0.6)["grace_cathedral"].clone()
+        sh[1, 4] = bad
+        with pytest.raises(ValueError, match="lighting contains 1 NaN or infinite values"):
+            render_novel_view(depth_to_mesh(depth, mask), sh, resolution=16, renderer="embree")
+
+    def test_a_scene_is_refused(self):
+        depth, mask = hemisphere_depth(16, 6.0)
+        scene = trimesh.Scene(depth_to_mesh(depth, mask))  # what trimesh.load returns for a .glb
+        sh = natural_lightings(0.6)["grace_cathedral"]
+        with pytest.raises(TypeError, match=r"mesh must be a trimesh.Trimesh, got Scene \(for a trimesh.Scene, pass "
+                                            r"scene.to_mesh\(\)"):
+            render_novel_view(scene, sh, resolution=16, renderer="embree")
+        assert render_novel_view(scene.to_mesh(), sh, resolution=16, renderer="embree").shape == (3, 16, 16)

@@ -128,6 +128,14 @@ class TestRenderShaded:
         with pytest.raises(ValueError, match="resolution"):
             render_shaded(sphere, SH, torch.eye(3), 0, renderer="embree")
 
+    def test_non_finite_lighting_and_a_scene_are_refused(self, sphere):
+        bad = SH.clone()
+        bad[0, 0] = float("nan")
+        with pytest.raises(ValueError, match="lighting contains 1 NaN or infinite values"):
+            render_shaded(sphere, bad, torch.eye(3), 16, renderer="embree")
+        with pytest.raises(TypeError, match="mesh must be a trimesh.Trimesh, got Scene"):
+            render_shaded(trimesh.Scene(sphere), SH, torch.eye(3), 16, renderer="embree")
+
 
 class TestRasterizeNormals:
     """pyrender against the ray caster and the analytic sphere (figures: docs/rendering.md)."""
