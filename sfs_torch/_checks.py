@@ -65,6 +65,17 @@ def check_finite(x: Tensor, name: str) -> None:
         raise ValueError(f"{name} contains {bad} NaN or infinite values")
 
 
+def check_unit_vectors(x: Tensor, name: str, where: str = "") -> None:
+    """``ValueError`` unless every vector along the last axis of ``x`` has length 1 within
+    1e-3; ``where`` (e.g. ``" on the mask"``) says which vectors were taken."""
+    squared = x.detach().square().sum(-1)  # |v|^2: no square root per vector
+    if bool(((squared > (1.0 + 1e-3) ** 2) | (squared < (1.0 - 1e-3) ** 2)).any()):
+        raise ValueError(
+            f"{name} must have unit length (within 1e-3){where}, got lengths from "
+            f"{float(squared.min().sqrt()):.4g} to {float(squared.max().sqrt()):.4g}"
+        )
+
+
 def check_mask(mask: Tensor, name: str = "mask", allow_full: bool = False, allow_empty: bool = False) -> Tensor:
     """Validate a ``(B, 1, H, W)`` mask and return it as ``bool``.
 

@@ -46,7 +46,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._checks import check_finite, check_shape, is_integer
+from ._checks import check_finite, check_shape, check_unit_vectors, is_integer
 
 __all__ = [
     "VMF",
@@ -365,9 +365,7 @@ class VMFForest:
             raise ValueError(f"X must have at least one row and one feature, got {tuple(X.shape)}")
         check_finite(X, "X")
         check_finite(normals, "normals")
-        squared = normals.square().sum(1)  # |n|^2, 5x cheaper than norm(dim=1)
-        if bool(((squared > (1.0 + 1e-3) ** 2) | (squared < (1.0 - 1e-3) ** 2)).any()):
-            raise ValueError("normals must be unit vectors (|n| = 1 within 1e-3)")
+        check_unit_vectors(normals, "normals")
         m = self._validate_params(X.shape[1])
         device = torch.device(self.device) if self.device is not None else X.device
         # hard splits carry no gradient: training data that requires grad is read as constants

@@ -29,7 +29,7 @@ import torch.nn.functional as F
 import trimesh
 from torch import Tensor
 
-from ._checks import check_mask, check_same_size, check_shape, is_integer
+from ._checks import check_finite, check_mask, check_same_size, check_shape, check_unit_vectors, is_integer, is_number
 from .io import linear_to_srgb, srgb_to_linear
 from .lighting import _BAND_OF_COEFFICIENT, _LAMBERT_OVER_PI, sh_basis_vectors
 
@@ -81,8 +81,18 @@ def sh_radiance(directions: Tensor, sh: Tensor, *, iterations: int = 1000) -> Te
 
     Returns:
         :math:`(K, 3)` non-negative albedo-weighted radiance.
+
+    Raises:
+        ValueError: bad shapes, NaN or infinite values, directions that are not unit
+            vectors (the quadrature's basis values assume them), or a negative ``iterations``.
     """
+    check_shape(directions, "directions", "K 3")
     check_shape(sh, "sh", "3 9")
+    check_finite(directions, "directions")
+    check_finite(sh, "sh")
+    check_unit_vectors(directions, "directions")
+    if not is_integer(iterations, 0):
+        raise ValueError(f"iterations must be an integer >= 0, got {iterations!r}")
     factors = torch.tensor([_LAMBERT_OVER_PI[b] for b in _BAND_OF_COEFFICIENT], dtype=directions.dtype,
                            device=directions.device)
     basis = sh_basis_vectors(directions)  # (K, 9)
@@ -138,7 +148,29 @@ def shade_environment(normals: Tensor, directions: Tensor, radiance: Tensor,
 
     Returns:
         :math:`(N, 3)` linear intensities.
+
+    Raises:
+        ValueError: bad or disagreeing shapes, NaN or infinite values, or directions that
+            are not unit vectors (each stands for the solid angle ``4 pi / K``).
     """
+    check_shape(normals, "normals", "N 3")
+    check_shape(directions, "directions", "K 3")
+    check_shape(radiance, "radiance", "K 3")
+    if radiance.shape[0] != directions.shape[0]:
+        raise ValueError(
+            f"radiance must have one row per direction, ({directions.shape[0]}, 3), got {tuple(radiance.shape)}"
+        )
+    if visibility is not None:
+        check_shape(visibility, "visibility", "N K", floating=False)
+        if visibility.shape != (normals.shape[0], directions.shape[0]):
+            raise ValueError(
+                f"visibility must have shape (N, K) = ({normals.shape[0]}, {directions.shape[0]}) for these "
+                f"normals and directions, got {tuple(visibility.shape)}"
+            )
+    check_finite(normals, "normals")
+    check_finite(directions, "directions")
+    check_finite(radiance, "radiance")
+    check_unit_vectors(directions, "directions")
     cosine = (normals.to(directions.dtype) @ directions.T).clamp_min(0)
     if visibility is not None:
         cosine = cosine * visibility.to(cosine.device, cosine.dtype)
@@ -149,8 +181,9 @@ def dominant_light(sh: Tensor) -> Tuple[Tensor, Tensor]:
     """The direction and colour of a lighting's linear (dipole) band.
 
     Returns:
-        :math:`(3,)` unit direction (camera frame) of the luminance dipole and :math:`(3,)`
-        RGB intensity of a surface facing it (:func:`render_sh` at that normal).
+        :math:`(3,)` unit direction (camera frame) of the luminance dipole (zero for a
+        lighting without one) and :math:`(3,)` RGB intensity of a surface facing it
+        (:func:`render_sh` at that normal).
     """
     check_shape(sh, "sh", "3 9")
     luminance = torch.tensor([0.2126, 0.7152, 0.0722], dtype=sh.dtype, device=sh.device) @ sh
@@ -164,12 +197,31 @@ def blinn_phong(normals: Tensor, view: Tensor, light: Tensor, colour: Tensor, sh
 
     Args:
         normals: :math:`(N, 3)` unit normals; view: :math:`(N, 3)` or :math:`(3,)` unit
-            vectors towards the camera; light: :math:`(3,)` unit direction towards the light;
+            vectors towards the camera; light: :math:`(3,)` unit direction towards the light,
+            or zero for none (what :func:`dominant_light` gives a lighting without a dipole);
             colour: :math:`(3,)` peak intensity.
 
     Returns:
-        :math:`(N, 3)`, zero where the light is behind the surface.
+        :math:`(N, 3)`, zero where the light is behind the surface (everywhere without one).
+
+    Raises:
+        ValueError: bad shapes, NaN or infinite values, a light direction that is not a
+            unit vector (its length would rescale ``n . light`` and tilt ``h``), or a
+            negative ``shininess`` (``0 ** shininess`` would be infinite).
     """
+    check_shape(normals, "normals", "N 3")
+    if not isinstance(view, Tensor):
+        raise TypeError(f"view must be a torch.Tensor of shape (N, 3) or (3,), got {type(view).__name__}")
+    if view.shape not in ((normals.shape[0], 3), (3,)):
+        raise ValueError(f"view must have shape (N, 3) = ({normals.shape[0]}, 3) or (3,), got {tuple(view.shape)}")
+    check_shape(light, "light", "3")
+    check_shape(colour, "colour", "3")
+    for name, value in (("normals", normals), ("view", view), ("light", light), ("colour", colour)):
+        check_finite(value, name)
+    if bool(light.any()):  # a zero light is no light: no highlight anywhere
+        check_unit_vectors(light, "light")
+    if not is_number(shininess, 0):
+        raise ValueError(f"shininess must be a number >= 0, got {shininess!r}")
     half = view + light
     half = half / half.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     lit = (normals @ light > 0).to(normals.dtype)
@@ -181,8 +233,14 @@ def expose(image: Tensor, gains: Tensor) -> Tensor:
 
     ``gains`` :math:`(3,)` is the exposure times each channel's white-balance gain
     (:func:`sfs_torch.datasets.camera_gains`).
+
+    Raises:
+        TypeError: ``image`` or ``gains`` is not a tensor.
+        ValueError: bad shapes, or ``gains`` holds NaN or infinite values.
     """
     check_shape(image, "image", "B 3 H W")
+    check_shape(gains, "gains", "3", floating=False)
+    check_finite(gains, "gains")
     return image * gains.to(image).view(1, 3, 1, 1)
 
 
@@ -190,13 +248,26 @@ def poisson_gaussian_noise(image: Tensor, gain: float, sigma: float, generator: 
     r"""Sensor noise of variance ``gain * I + sigma^2`` (shot noise plus read noise), any shape.
 
     ``gain`` is the intensity of one photo-electron: ``1 / gain`` electrons fill the range [0, 1].
+
+    Raises:
+        ValueError: ``gain`` or ``sigma`` is not a finite number >= 0 (a negative variance
+            would make the noise NaN).
     """
+    for name, value in (("gain", gain), ("sigma", sigma)):
+        if not is_number(value, 0):
+            raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
     noise = torch.randn(image.shape, generator=generator, dtype=image.dtype)
     return image + noise.to(image.device) * (gain * image.clamp_min(0) + sigma ** 2).sqrt()
 
 
 def quantise_srgb(image: Tensor, bits: int = 8) -> Tensor:
-    """Store as a ``bits``-bit sRGB file and read it back: clip to [0, 1], encode, round, decode; any shape."""
+    """Store as a ``bits``-bit sRGB file and read it back: clip to [0, 1], encode, round, decode; any shape.
+
+    Raises:
+        ValueError: ``bits`` is not an integer >= 1 (0 bits leave no level to round to).
+    """
+    if not is_integer(bits, 1):
+        raise ValueError(f"bits must be an integer >= 1, got {bits!r}")
     levels = 2 ** bits - 1
     return srgb_to_linear(torch.round(linear_to_srgb(image.clamp(0, 1)) * levels) / levels)
 

@@ -22,7 +22,7 @@ from typing import Optional, Sequence, Union
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_finite, check_mask, check_same_size, check_shape, is_integer
+from ._checks import check_finite, check_mask, check_same_size, check_shape, check_unit_vectors, is_integer
 from .camera import _positive_focal, centroid_rotation
 from .lighting import fit_sh, fit_sh_vectors, rotate_sh, sh_basis_vectors
 from .silhouette import SilhouetteConfig, silhouette_distances
@@ -233,12 +233,7 @@ def refit_lighting(image: Tensor, mask: Tensor, normals: Tensor, *, valid: bool 
     check_finite(image, "image")
     check_finite(normals, "normals")
     # an image passed as normals (the two swapped) fits just as well, to a wrong lighting
-    squared = normals.detach().square().sum(1, keepdim=True)[mask]
-    if bool(((squared > (1.0 + 1e-3) ** 2) | (squared < (1.0 - 1e-3) ** 2)).any()):
-        raise ValueError(
-            f"normals must be unit vectors (|n| = 1 within 1e-3) on the mask, got |n| from "
-            f"{float(squared.min().sqrt()):.4g} to {float(squared.max().sqrt()):.4g}"
-        )
+    check_unit_vectors(normals.permute(0, 2, 3, 1)[mask[:, 0]], "normals", " on the mask")
     unclipped = mask & ((image > 0) & (image < 1)).all(1, keepdim=True)
     usable = unclipped.flatten(1).any(1)[:, None, None, None]
     hemisphere = hemisphere_directions(VALIDITY_DIRECTIONS, device=image.device, dtype=torch.float64) if valid else None

@@ -37,6 +37,22 @@ class TestSphereDirections:
         with pytest.raises(ValueError, match="n must be a positive integer"):
             sphere_directions(0)
 
+    def test_shade_environment_exception(self):
+        d, n = sphere_directions(400), _random_normals(5)
+        sky = torch.ones(400, 3, dtype=torch.float64)
+        with pytest.raises(ValueError, match=r"^directions must have unit length \(within 1e-3\), got lengths from 2 to 2$"):
+            shade_environment(n, 2 * d, sky)  # was 4x too bright
+        with pytest.raises(ValueError, match=r"^radiance must have shape \(K, 3\), got \(3, 400\)$"):
+            shade_environment(n, d, sky.T)
+        with pytest.raises(ValueError, match=r"^radiance must have one row per direction, \(400, 3\), got \(399, 3\)$"):
+            shade_environment(n, d, sky[:399])
+        with pytest.raises(ValueError, match=r"^normals must have shape \(N, 3\), got \(3, 5\)$"):
+            shade_environment(n.T, d, sky)
+        with pytest.raises(ValueError, match=r"^visibility must have shape \(N, K\) = \(5, 400\) for these normals"):
+            shade_environment(n, d, sky, torch.ones(5, 399, dtype=torch.bool))
+        with pytest.raises(ValueError, match=r"^radiance contains 3 NaN or infinite values$"):
+            shade_environment(n, d, torch.cat([sky[:399], torch.full((1, 3), math.nan, dtype=torch.float64)]))
+
 
 class TestSHRadiance:
     @pytest.mark.parametrize("name", ["grace_cathedral", "uffizi_gallery", "campus_sunset"])
@@ -59,6 +75,18 @@ class TestSHRadiance:
         lambert = torch.tensor([1.0, 2 / 3, 2 / 3, 2 / 3, 0.25, 0.25, 0.25, 0.25, 0.25], dtype=torch.float64)
         projected = (4 * math.pi / 400) * (sh_basis_vectors(d).T @ radiance).T * lambert
         assert torch.allclose(projected, sh, atol=1e-3 * float(sh.abs().max()))
+
+    def test_exception(self):
+        sh = natural_lightings(0.7)["grace_cathedral"]
+        d = sphere_directions(400)
+        with pytest.raises(ValueError, match=r"^directions must have unit length \(within 1e-3\), got lengths from 2 to 2$"):
+            sh_radiance(2 * d, sh)  # was off by 0.64
+        with pytest.raises(ValueError, match=r"^sh contains 27 NaN or infinite values$"):
+            sh_radiance(d, torch.full((3, 9), math.nan))
+        with pytest.raises(ValueError, match=r"^directions must have shape \(K, 3\), got \(3, 400\)$"):
+            sh_radiance(d.T, sh)
+        with pytest.raises(ValueError, match=r"^iterations must be an integer >= 0, got 1.5$"):
+            sh_radiance(d, sh, iterations=1.5)
 
 
 def _wall_on_floor():
@@ -115,12 +143,52 @@ class TestSpecular:
         assert torch.allclose(out[1], colour * math.cos(math.pi / 8) ** 40)
         assert (out[2] == 0).all()
 
+    def test_blinn_phong_exception(self):
+        normals, view = _random_normals(4), torch.tensor([0.0, 0, 1], dtype=torch.float64)
+        light, colour = torch.tensor([0.0, 0, 1], dtype=torch.float64), torch.ones(3, dtype=torch.float64)
+        with pytest.raises(ValueError, match=r"^light must have unit length \(within 1e-3\), got lengths from 2 to 2$"):
+            blinn_phong(normals, view, 2 * light, colour, 40.0)
+        with pytest.raises(ValueError, match=r"^shininess must be a number >= 0, got -1.0$"):
+            blinn_phong(normals, view, light, colour, -1.0)  # was NaN
+        with pytest.raises(ValueError, match=r"^normals must have shape \(N, 3\), got \(3, 4\)$"):
+            blinn_phong(normals.T, view, light, colour, 40.0)
+        with pytest.raises(ValueError, match=r"^view must have shape \(N, 3\) = \(4, 3\) or \(3,\), got \(5, 3\)$"):
+            blinn_phong(normals, _random_normals(5), light, colour, 40.0)
+        with pytest.raises(ValueError, match=r"^colour must have shape \(3\), got \(1, 3\)$"):
+            blinn_phong(normals, view, light, colour[None], 40.0)
+
+    def test_no_dipole_no_highlight(self):
+        # a lighting without a dipole has no dominant direction: no highlight, not an error
+        ambient = torch.zeros(3, 9, dtype=torch.float64)
+        ambient[:, 0] = 1.0
+        direction, _ = dominant_light(ambient)
+        assert not bool(direction.any())
+        out = blinn_phong(_random_normals(4), torch.tensor([0.0, 0, 1], dtype=torch.float64), direction,
+                          torch.ones(3, dtype=torch.float64), 40.0)
+        assert torch.equal(out, torch.zeros(4, 3, dtype=torch.float64))
+
 
 class TestCameraEffects:
     def test_expose_scales(self):
         image = torch.rand(2, 3, 4, 4)
         gains = torch.tensor([1.1, 1.0, 0.9])
         assert torch.allclose(expose(image, 1.5 * gains), image * 1.5 * gains.view(1, 3, 1, 1))
+
+    def test_expose_exception(self):
+        image = torch.rand(2, 3, 4, 4)
+        with pytest.raises(TypeError, match=r"^gains must be a torch.Tensor of shape \(3\), got list$"):
+            expose(image, [1.0, 2.0, 3.0])
+        with pytest.raises(ValueError, match=r"^gains must have shape \(3\), got \(\)$"):
+            expose(image, torch.tensor(2.0))
+        with pytest.raises(ValueError, match=r"^gains contains 1 NaN or infinite values$"):
+            expose(image, torch.tensor([1.0, math.inf, 1.0]))
+
+    @pytest.mark.parametrize("gain, sigma, name, value", [(-0.01, 0.0, "gain", "-0.01"), (0.0, -0.01, "sigma", "-0.01"),
+                                                          (math.nan, 0.0, "gain", "nan"), (0.0, "0.1", "sigma", "'0.1'")])
+    def test_poisson_gaussian_exception(self, gain, sigma, name, value):
+        # a negative gain made the variance, and so the whole image, NaN
+        with pytest.raises(ValueError, match=rf"^{name} must be a finite number >= 0, got {value}$"):
+            poisson_gaussian_noise(torch.rand(1, 3, 4, 4), gain, sigma, torch.Generator())
 
     def test_poisson_gaussian_variance(self):
         image = torch.full((1, 3, 200, 200), 0.5, dtype=torch.float64)
@@ -134,6 +202,12 @@ class TestCameraEffects:
         codes = linear_to_srgb(q) * 255
         assert torch.allclose(codes, codes.round(), atol=1e-6)
         assert (linear_to_srgb(q) - linear_to_srgb(x.clamp(0, 1))).abs().max() <= 0.5 / 255 + 1e-9
+
+    @pytest.mark.parametrize("bits", [0, -1, 8.0, True])
+    def test_quantise_srgb_bits(self, bits):
+        # 0 bits made the image NaN
+        with pytest.raises(ValueError, match=rf"^bits must be an integer >= 1, got {bits!r}$"):
+            quantise_srgb(torch.rand(10), bits)
 
 
 class TestNoiseEstimate:
