@@ -23,7 +23,7 @@ import torch
 from torch import Tensor, nn
 
 from ._blocks import in_blocks
-from ._checks import check_finite, check_mask, check_same_size, check_shape
+from ._checks import check_finite, check_mask, check_same_size, check_shape, is_number
 
 __all__ = [
     "SH_CONSTANTS",
@@ -97,6 +97,18 @@ def sh_basis(normals: Tensor) -> Tensor:
     """
     check_shape(normals, "normals", "B 3 H W")
     return sh_basis_vectors(normals.movedim(1, -1)).movedim(-1, 1)
+
+
+def _check_trailing(x: Tensor, name: str, trailing: Tuple[int, ...]) -> None:
+    """Check that ``x`` is a floating-point tensor of shape ``(*, *trailing)``, like :func:`check_shape`
+    for the functions that take any batch shape."""
+    spec = ", ".join(["*", *map(str, trailing)])
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor of shape ({spec}), got {type(x).__name__}")
+    if x.shape[x.ndim - len(trailing):] != trailing:
+        raise ValueError(f"{name} must have shape ({spec}), got {tuple(x.shape)}")
+    if not x.is_floating_point():
+        raise ValueError(f"{name} must be a floating-point tensor, got {x.dtype}")
 
 
 def _sh_polynomial(sh: Tensor) -> Tuple[Tensor, Tensor]:
@@ -201,7 +213,25 @@ def fit_sh_vectors(
 
     Returns:
         :math:`(B, 3, 9)` coefficients.
+
+    Raises:
+        TypeError: an argument is not a tensor.
+        ValueError: bad or disagreeing shapes, or non-floating-point ``colours`` (the
+            result takes their dtype).
     """
+    check_shape(normals, "normals", "B N 3", floating=False)
+    check_shape(colours, "colours", "B N 3")
+    if colours.shape != normals.shape:
+        raise ValueError(
+            f"normals and colours must have the same shape (B, N, 3), got {tuple(normals.shape)} and "
+            f"{tuple(colours.shape)}"
+        )
+    if weights is not None:
+        check_shape(weights, "weights", "B N", floating=False)
+        if weights.shape != normals.shape[:2]:
+            raise ValueError(f"weights must have shape (B, N) = {tuple(normals.shape[:2])}, got {tuple(weights.shape)}")
+    if nonnegative is not None:
+        check_shape(nonnegative, "nonnegative", "M 3")
     # Float64 normal equations: on the visible hemisphere alone the constant, z and z^2
     # terms are nearly collinear, and float32 loses ~1e-3 of the coefficients.
     out_dtype = colours.dtype
@@ -311,7 +341,13 @@ def irradiance_to_sh(coefficients: Tensor, albedo: float = 1.0) -> Tensor:
 
     Returns:
         :math:`(*, 3, 9)` SH lighting.
+
+    Raises:
+        TypeError: ``coefficients`` is not a tensor.
+        ValueError: its shape is not :math:`(*, 3, 9)`, or it is not floating point (the
+            factors ``A_l / pi`` would be truncated to integers).
     """
+    _check_trailing(coefficients, "coefficients", (3, 9))
     factors = torch.tensor(
         [_LAMBERT_OVER_PI[band] for band in _BAND_OF_COEFFICIENT], dtype=coefficients.dtype, device=coefficients.device
     )
@@ -326,7 +362,12 @@ def sh_to_matrix(sh: Tensor) -> Tensor:
 
     Returns:
         :math:`(*, 3, 4, 4)` symmetric matrices.
+
+    Raises:
+        TypeError: ``sh`` is not a tensor.
+        ValueError: its shape is not :math:`(*, 3, 9)`, or it is not floating point.
     """
+    _check_trailing(sh, "sh", (3, 9))
     s = sh.unbind(-1)
     zero = torch.zeros_like(s[0])
     rows = [
@@ -350,7 +391,12 @@ def matrix_to_sh(matrix: Tensor) -> Tensor:
 
     Returns:
         :math:`(*, 3, 9)`.
+
+    Raises:
+        TypeError: ``matrix`` is not a tensor.
+        ValueError: its shape is not :math:`(*, 3, 4, 4)`, or it is not floating point.
     """
+    _check_trailing(matrix, "matrix", (3, 4, 4))
     m = (matrix + matrix.transpose(-1, -2)) / 2
     diag_xy = (m[..., 0, 0] + m[..., 1, 1]) / 2
     l8 = (m[..., 0, 0] - m[..., 1, 1]) / (2 * _C4)
@@ -381,11 +427,25 @@ def rotate_sh(sh: Tensor, rotation: Tensor) -> Tensor:
 
     Returns:
         rotated lighting, same shape as ``sh`` broadcast with ``rotation``.
+
+    Raises:
+        TypeError: an argument is not a tensor.
+        ValueError: bad shapes, batch sizes that do not broadcast, or non-floating-point ``sh``.
     """
-    if rotation.shape[-2:] != (3, 3):
+    for x, name, tail in ((rotation, "rotation", "3, 3"), (sh, "sh", "3, 9")):
+        if not isinstance(x, Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor of shape ({tail}) or (B, {tail}), got {type(x).__name__}")
+    if rotation.ndim not in (2, 3) or rotation.shape[-2:] != (3, 3):
         raise ValueError(f"rotation must have shape (3, 3) or (B, 3, 3), got {tuple(rotation.shape)}")
-    if sh.shape[-2:] != (3, 9):
+    if sh.ndim not in (2, 3) or sh.shape[-2:] != (3, 9):
         raise ValueError(f"sh must have shape (3, 9) or (B, 3, 9), got {tuple(sh.shape)}")
+    if not sh.is_floating_point():
+        raise ValueError(f"sh must be a floating-point tensor, got {sh.dtype}")
+    if rotation.ndim == sh.ndim == 3 and rotation.shape[0] != sh.shape[0] and 1 not in (rotation.shape[0], sh.shape[0]):
+        raise ValueError(
+            f"sh and rotation must have the same batch size (or one of them 1), got {tuple(sh.shape)} and "
+            f"{tuple(rotation.shape)}"
+        )
     rot4 = torch.zeros(*rotation.shape[:-2], 4, 4, dtype=sh.dtype, device=sh.device)
     rot4[..., :3, :3] = rotation.to(sh.dtype)
     rot4[..., 3, 3] = 1
@@ -450,7 +510,12 @@ def natural_lightings(albedo: float = 1.0) -> Dict[str, Tensor]:
 
     These are natural, coloured illuminations (Debevec's probes); ``albedo`` scales
     them (their raw intensities render to roughly [0, 1.5]).
+
+    Raises:
+        ValueError: ``albedo`` is not a finite number > 0.
     """
+    if not is_number(albedo, 0, strict=True):
+        raise ValueError(f"albedo must be a number > 0, got {albedo!r}")
     data = json.loads(resources.files("sfs_torch").joinpath("data/rh_probes.json").read_text())
     return {
         name: irradiance_to_sh(torch.tensor(coefs, dtype=torch.float32).T.contiguous(), albedo)

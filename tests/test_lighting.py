@@ -9,6 +9,7 @@ from sfs_torch.lighting import (
     SHRenderer,
     SHRotation,
     fit_sh,
+    fit_sh_vectors,
     irradiance_to_sh,
     matrix_to_sh,
     natural_lightings,
@@ -217,6 +218,19 @@ class TestFitSH:
         with pytest.raises(ValueError, match=r"^weights are zero on the whole mask in batch element\(s\) \[1\]$"):
             fit_sh(n, n, mask, weights)
 
+    def test_fit_sh_vectors_exception(self):
+        # unbatched samples raised an IndexError, a wrong weight shape a bmm error
+        n = random_normals(2, 5, 10).flatten(2).transpose(1, 2)  # (2, 50, 3)
+        with pytest.raises(ValueError, match=r"^normals must have shape \(B, N, 3\), got \(50, 3\)$"):
+            fit_sh_vectors(n[0], n[0])
+        with pytest.raises(ValueError, match=r"^normals and colours must have the same shape \(B, N, 3\), got "
+                                             r"\(2, 50, 3\) and \(2, 49, 3\)$"):
+            fit_sh_vectors(n, n[:, :49])
+        with pytest.raises(ValueError, match=r"^weights must have shape \(B, N\) = \(2, 50\), got \(2, 49\)$"):
+            fit_sh_vectors(n, n, torch.ones(2, 49, dtype=torch.float64))
+        with pytest.raises(ValueError, match=r"^colours must be a floating-point tensor, got torch.int64$"):
+            fit_sh_vectors(n, n.long())
+
 
 class TestConversions:
     def test_ramamoorthi_hanrahan_formula(self):
@@ -256,6 +270,19 @@ class TestConversions:
         m = sh_to_matrix(sh) + 0.7 * torch.diag(torch.tensor([1.0, 1, 1, -1], dtype=torch.float64))
         assert torch.allclose(matrix_to_sh(m), sh, atol=1e-12)
 
+    def test_exception(self):
+        with pytest.raises(ValueError, match=r"^coefficients must have shape \(\*, 3, 9\), got \(9, 3\)$"):
+            irradiance_to_sh(torch.ones(9, 3))
+        # integer coefficients truncated the factors A_l / pi to 0
+        with pytest.raises(ValueError, match=r"^coefficients must be a floating-point tensor, got torch.int64$"):
+            irradiance_to_sh(torch.ones(3, 9, dtype=torch.long))
+        with pytest.raises(ValueError, match=r"^sh must have shape \(\*, 3, 9\), got \(9,\)$"):
+            sh_to_matrix(torch.ones(9))
+        with pytest.raises(ValueError, match=r"^matrix must have shape \(\*, 3, 4, 4\), got \(4, 4\)$"):
+            matrix_to_sh(torch.ones(4, 4))
+        with pytest.raises(TypeError, match=r"^sh must be a torch.Tensor of shape \(\*, 3, 9\), got list$"):
+            sh_to_matrix([0.0] * 9)
+
 
 class TestRotateSH:
     def test_rotated_lighting_on_rotated_normals(self):
@@ -274,6 +301,17 @@ class TestRotateSH:
     def test_exception(self):
         with pytest.raises(ValueError, match="rotation"):
             rotate_sh(random_sh(1), torch.eye(4))
+        # a size error from inside the matrix product before
+        with pytest.raises(ValueError, match=r"^sh and rotation must have the same batch size \(or one of them 1\), "
+                                             r"got \(2, 3, 9\) and \(5, 3, 3\)$"):
+            rotate_sh(torch.ones(2, 3, 9), torch.eye(3).expand(5, 3, 3))
+        with pytest.raises(ValueError, match=r"^sh must have shape \(3, 9\) or \(B, 3, 9\), got \(1, 2, 3, 9\)$"):
+            rotate_sh(torch.ones(1, 2, 3, 9), torch.eye(3))
+
+    def test_batch_of_one_broadcasts(self):
+        sh, rot = random_sh(3), random_rotation()
+        assert torch.equal(rotate_sh(sh, rot[None]), rotate_sh(sh, rot))
+        assert rotate_sh(sh[:1], rot.expand(4, 3, 3)).shape == (4, 3, 9)
 
 
 class TestSphere:
@@ -300,6 +338,12 @@ class TestSphere:
         # R&H: Grace Cathedral L00 red is 0.79, rendered irradiance constant term c4 * L00 / pi.
         assert lights["grace_cathedral"][0, 0] == pytest.approx(0.79)
         assert lights["grace_cathedral"][0, 1] == pytest.approx(0.39 * 2 / 3)
+
+    @pytest.mark.parametrize("albedo", ["0.7", 0, -1.0, math.inf, True])
+    def test_natural_lightings_albedo(self, albedo):
+        # a string raised a TypeError from inside the product
+        with pytest.raises(ValueError, match=rf"^albedo must be a number > 0, got {albedo!r}$"):
+            natural_lightings(albedo)
 
 
 class TestSHRotation:
