@@ -90,13 +90,40 @@ class ImageAndMask:
     mask: Tensor
 
 
+_SCALE_CODES = "divide 8-bit codes by 255 (16-bit ones by 65535) first"
+
+
+def _check_floating(x: Tensor, what: str) -> None:
+    if not isinstance(x, Tensor):
+        raise TypeError(f"x must be a torch.Tensor of {what}, got {type(x).__name__}")
+    # integer codes would run through the curve unscaled (code 255 decodes to 5e5)
+    if not x.is_floating_point():
+        raise ValueError(f"x must be a floating-point tensor of {what}, got {x.dtype}: {_SCALE_CODES}")
+
+
 def srgb_to_linear(x: Tensor) -> Tensor:
     """Decode sRGB values (IEC 61966-2-1) to linear RGB, elementwise, any shape.
+
+    Args:
+        x: floating-point sRGB values in [0, 1] (a file's codes divided by their maximum).
+
+    Returns:
+        linear values in [0, 1], shape and dtype of ``x``.
+
+    Raises:
+        TypeError: ``x`` is not a tensor.
+        ValueError: ``x`` is not floating point, or holds values outside [0, 1].
 
     Example:
         >>> srgb_to_linear(torch.tensor([0.0, 0.5, 1.0]))
         tensor([0.0000, 0.2140, 1.0000])
     """
+    _check_floating(x, "sRGB values in [0, 1]")
+    if x.numel():
+        low, high = float(x.min()), float(x.max())
+        # codes converted to float but not scaled, the usual mistake, lie far above 1
+        if low < 0 or high > 1:
+            raise ValueError(f"x must hold sRGB values in [0, 1], got values in [{low:g}, {high:g}]: {_SCALE_CODES}")
     # Elementwise (unlike kornia.color's (*, 3, H, W) versions) so grey maps work too;
     # the clamp keeps the unused branch of torch.where free of NaN.
     return torch.where(x <= 0.04045, x / 12.92, ((x.clamp_min(0.04045) + 0.055) / 1.055) ** 2.4)
@@ -105,10 +132,22 @@ def srgb_to_linear(x: Tensor) -> Tensor:
 def linear_to_srgb(x: Tensor) -> Tensor:
     """Encode linear RGB values as sRGB (IEC 61966-2-1), elementwise, any shape.
 
+    Args:
+        x: floating-point linear values; [0, 1] encodes to [0, 1], values outside it
+            follow the curve's extension (clamp first to write a file).
+
+    Returns:
+        sRGB values, shape and dtype of ``x``.
+
+    Raises:
+        TypeError: ``x`` is not a tensor.
+        ValueError: ``x`` is not floating point.
+
     Example:
         >>> linear_to_srgb(torch.tensor([0.0, 0.214041, 1.0]))
         tensor([0.0000, 0.5000, 1.0000])
     """
+    _check_floating(x, "linear values")
     return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308) ** (1 / 2.4) - 0.055)
 
 

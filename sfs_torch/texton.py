@@ -130,11 +130,17 @@ def texton_filter_bank(
     Returns:
         :math:`(17, 3, k, k)` weights; input channels are L, a, b.
 
+    Raises:
+        ValueError: ``kernel_size`` is not a positive odd integer, or ``dtype`` is not a
+            floating-point dtype (the filters' weights, all below 1, would round to 0).
+
     Example:
         >>> texton_filter_bank().shape
         torch.Size([17, 3, 5, 5])
     """
     _check_kernel_size(kernel_size)
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+        raise ValueError(f"dtype must be a floating-point torch.dtype, got {dtype!r}")
     return _filter_bank(kernel_size, torch.device("cpu") if device is None else torch.device(device), dtype)
 
 

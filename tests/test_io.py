@@ -1,4 +1,5 @@
 import json
+import re
 
 import cv2
 import numpy as np
@@ -55,6 +56,26 @@ class TestSRGB:
         # the standard's two segments meet at 0.04045 to within its rounded constants
         lo, hi = io.srgb_to_linear(torch.tensor([0.04045, 0.04045 + 1e-9], dtype=torch.float64))
         assert abs(hi.item() - lo.item()) < 1e-8
+
+    @pytest.mark.parametrize("dtype", [torch.uint8, torch.int64])
+    def test_integer_codes_are_refused(self, dtype):
+        # uint8 codes decoded to values up to 5.2e5
+        codes = torch.tensor([0, 128, 255], dtype=dtype)
+        for function, what in ((io.srgb_to_linear, "sRGB values in [0, 1]"), (io.linear_to_srgb, "linear values")):
+            with pytest.raises(ValueError, match=rf"^x must be a floating-point tensor of {re.escape(what)}, got "
+                                                 rf"{dtype}: divide 8-bit codes by 255 \(16-bit ones by 65535\) first$"):
+                function(codes)
+
+    def test_srgb_range(self):
+        with pytest.raises(ValueError, match=r"^x must hold sRGB values in \[0, 1\], got values in \[0, 255\]: divide 8-bit"):
+            io.srgb_to_linear(torch.tensor([0.0, 128.0, 255.0]))
+        with pytest.raises(ValueError, match=r"got values in \[-0.1, 0.5\]"):
+            io.srgb_to_linear(torch.tensor([-0.1, 0.5]))
+        with pytest.raises(TypeError, match=r"^x must be a torch.Tensor of linear values, got list$"):
+            io.linear_to_srgb([0.5])
+        assert io.srgb_to_linear(torch.zeros(0)).shape == (0,)
+        # linear values beyond 1 (highlights) still encode, along the curve
+        assert io.linear_to_srgb(torch.tensor([2.0], dtype=torch.float64)).item() == pytest.approx(1.055 * 2 ** (1 / 2.4) - 0.055)
 
 
 class TestReadWriteImage:

@@ -1,3 +1,5 @@
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -74,6 +76,12 @@ class TestTextonFilterBank:
         for bad in (4, 0, 2.5):
             with pytest.raises(ValueError, match="kernel_size"):
                 texton_filter_bank(bad)
+
+    @pytest.mark.parametrize("dtype", [torch.int64, torch.bool, torch.complex64, "float32"])
+    def test_dtype_must_be_floating(self, dtype):
+        # an integer dtype returned all-zero filters
+        with pytest.raises(ValueError, match=rf"^dtype must be a floating-point torch.dtype, got {re.escape(repr(dtype))}$"):
+            texton_filter_bank(5, dtype=dtype)
 
 
 class TestLinearRgbToLab:
