@@ -39,7 +39,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ._checks import check_finite, check_mask, check_same_size, check_shape, from_batch, is_integer, to_batch
+from ._checks import check_finite, check_mask, check_same_size, check_shape, from_batch, is_integer, is_number, to_batch
 from .camera import _check_camera, pixel_grid
 
 __all__ = [
@@ -114,12 +114,13 @@ def check_integrability_config(cfg: IntegrabilityConfig, prefix: str = "") -> No
     for name, minimum in (("max_iter", 1), ("l1_iter", 0), ("conv_iter", 0)):
         if not is_integer(getattr(cfg, name), minimum):
             raise ValueError(f"{prefix}{name} must be an integer >= {minimum}, got {getattr(cfg, name)!r}")
+    # an infinite tol stops the solver before its first step (an all-zero depth)
     for name in ("tol", "l1_delta"):
-        if not getattr(cfg, name) > 0:
+        if not is_number(getattr(cfg, name), 0, strict=True):
             raise ValueError(f"{prefix}{name} must be > 0, got {getattr(cfg, name)!r}")
-    if not 0 < cfg.min_nz < 1:
+    if not (is_number(cfg.min_nz, 0, strict=True) and cfg.min_nz < 1):
         raise ValueError(f"{prefix}min_nz must be in (0, 1), got {cfg.min_nz!r}")
-    if not cfg.conv_prior >= 0:
+    if not is_number(cfg.conv_prior, 0):
         raise ValueError(f"{prefix}conv_prior must be >= 0, got {cfg.conv_prior!r}")
 
 

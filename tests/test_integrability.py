@@ -1,3 +1,4 @@
+import math
 import re
 from pathlib import Path
 
@@ -299,6 +300,19 @@ class TestCheckIntegrabilityConfig:
     def test_exception_names_the_key(self, options, message, prefix):
         with pytest.raises(ValueError, match=f"^{re.escape(prefix)}{message}$"):
             check_integrability_config(IntegrabilityConfig(**options), prefix=prefix)
+
+    @pytest.mark.parametrize("options, message", [
+        ({"tol": math.inf}, r"tol must be > 0, got inf"),  # gave an all-zero depth
+        ({"l1_delta": math.inf}, r"l1_delta must be > 0, got inf"),
+        ({"tol": "1e-6"}, r"tol must be > 0, got '1e-6'"),  # these four raised a TypeError from a comparison
+        ({"l1_delta": "0.1"}, r"l1_delta must be > 0, got '0.1'"),
+        ({"min_nz": "0.5"}, r"min_nz must be in \(0, 1\), got '0.5'"),
+        ({"conv_prior": "0.1"}, r"conv_prior must be >= 0, got '0.1'"),
+        ({"tol": math.nan}, r"tol must be > 0, got nan"),
+    ])
+    def test_options_must_be_finite_numbers(self, options, message):
+        with pytest.raises(ValueError, match=f"^integrate.{message}$"):
+            check_integrability_config(IntegrabilityConfig(**options), prefix="integrate.")
 
     def test_valid(self):
         for method in ("l2", "l1", "conv"):
