@@ -184,11 +184,13 @@ class _NovelView:
     resolution: int
 
 
-def _novel_view(cfg: DictConfig, pipeline_cfg: PipelineConfig) -> _NovelView:
+def _novel_view(cfg: DictConfig, pipeline_cfg: PipelineConfig, given: Optional[bool] = None) -> _NovelView:
     """Validate ``novel_view`` and resolve its renderer, before any work.
 
-    The renderer is resolved (an OpenGL context made, ~1 s) only when a novel view will be
-    drawn, i.e. with ``integrate=...``; its name is checked always.
+    The renderer is resolved (an OpenGL context made, ~1 s) only when a novel view may be
+    drawn, i.e. when the call returns a depth map (:func:`_returns_depth`) for a lighting
+    that is ``given`` or not (``None``: a batch, whose items may be either); its name is
+    checked always.
     """
     view = cfg.get("novel_view") or OmegaConf.structured(NovelViewConfig)
     try:
@@ -201,7 +203,8 @@ def _novel_view(cfg: DictConfig, pipeline_cfg: PipelineConfig) -> _NovelView:
     if not is_integer(resolution, 1):
         raise ValueError(f"novel_view.resolution must be a positive integer, got {resolution!r}")
     name = renderer_name(view.renderer, "novel_view.renderer")
-    if pipeline_cfg.integrate.method == "none":  # no depth map, no novel view: nothing to draw
+    kinds = (False, True) if given is None else (given,)
+    if not any(_returns_depth(pipeline_cfg, kind) for kind in kinds):  # no depth map, no novel view
         return _NovelView(None, azimuth, elevation, resolution)
     choice = choose_renderer(name, None if name == "embree" else gl_context(), key="novel_view.renderer")
     log.info("novel view renderer: %s", choice.reason)
@@ -284,7 +287,7 @@ def run(cfg: DictConfig) -> Dict[str, float]:
     if cfg.image is None:
         _check_demo_config(cfg.demo)
     out = _output_folder(cfg)
-    novel_view = _novel_view(cfg, pipeline_cfg)
+    novel_view = _novel_view(cfg, pipeline_cfg, given=cfg.image is not None and bool(cfg.lighting))
     true_normals = true_lighting = None
     if cfg.image is None:
         if cfg.mask is not None:
@@ -375,7 +378,7 @@ def _finish(out: Path, est: Estimate, image, mask, title: str, true_normals, tru
 # ------------------------------------------------------------------------------------------
 # Batch: every item folder of input_dir (docs/batch.md)
 
-# written by every run; the depth outputs and meshes also when integrate= is set
+# written by every run; the depth outputs, meshes and novel view also with a depth map (_returns_depth)
 REQUIRED_OUTPUTS = ("normals.npy", "normals.png", "lighting.json", "reflectance_map.png", "confidence.png",
                     "summary.png", "metrics.json")
 SUMMARY_COLUMNS = ("item", "status", "seconds", "error", "median_error_deg")
@@ -446,7 +449,6 @@ def run_batch(cfg: DictConfig) -> BatchResult:
     out = _output_folder(cfg)
     folders = _batch_folders(cfg, out)
     novel_view = _novel_view(cfg, pipeline_cfg)
-    expected = _expected_outputs(pipeline_cfg, mesh_formats)
     # holds the example-geometry database, loaded at the first item that is estimated, for all the others
     model = ShapeFromShading(pipeline_cfg, progress=False)
     out.mkdir(parents=True, exist_ok=True)
@@ -459,8 +461,7 @@ def run_batch(cfg: DictConfig) -> BatchResult:
     with _quiet_stages(), logging_redirect_tqdm(), bar:
         for folder in bar:
             bar.set_postfix_str(", ".join([*_counts(rows), folder.name]))
-            rows.append(_batch_item(cfg, folder, out / folder.name, pipeline_cfg, mesh_formats, expected, model,
-                                    novel_view))
+            rows.append(_batch_item(cfg, folder, out / folder.name, pipeline_cfg, mesh_formats, model, novel_view))
             _write_summary(summary, rows)
         bar.set_postfix_str(", ".join(_counts(rows)))
     result = BatchResult(tuple(rows), summary)
@@ -509,20 +510,42 @@ def _batch_folders(cfg: DictConfig, out: Path) -> List[Path]:
     return folders
 
 
-def _expected_outputs(pipeline_cfg: PipelineConfig, mesh_formats: Tuple[str, ...]) -> Tuple[str, ...]:
-    """The files a run with these options writes for every item."""
-    names = list(REQUIRED_OUTPUTS)
+def _returns_depth(pipeline_cfg: PipelineConfig, given: bool) -> bool:
+    """Whether :func:`~sfs_torch.pipeline.estimate` with these options returns a depth map
+    (``Estimate.depth``), for a given (``given``) or an estimated lighting, without running it.
+
+    The rule of ``estimate``: integrability gives one; otherwise the photometric refinement
+    does when it runs (``refine.when``) with the surface model, which ``refine.model="auto"``
+    picks when the lighting is optimised (never a given one).
+    """
     if pipeline_cfg.integrate.method != "none":
+        return True
+    refine = pipeline_cfg.refine
+    if not (refine.when == "always" or (refine.when == "known" and given)):
+        return False
+    if refine.model == "auto":
+        return refine.optimise_lighting and not given
+    return refine.model == "surface"
+
+
+def _expected_outputs(pipeline_cfg: PipelineConfig, mesh_formats: Tuple[str, ...], given: bool) -> Tuple[str, ...]:
+    """The files a run with these options writes for an item whose lighting is ``given``
+    (its ``lighting.json``) or estimated: with a depth map, :func:`_write_outputs` adds the
+    depth files, the meshes and the novel view."""
+    names = list(REQUIRED_OUTPUTS)
+    if _returns_depth(pipeline_cfg, given):
         names += ["depth.npy", "depth.png", "depth.json", "novel_view.png", *(f"mesh.{kind}" for kind in mesh_formats)]
     return tuple(names)
 
 
 def _batch_item(cfg: DictConfig, folder: Path, target: Path, pipeline_cfg: PipelineConfig,
-                mesh_formats: Tuple[str, ...], expected: Tuple[str, ...], model: ShapeFromShading,
+                mesh_formats: Tuple[str, ...], model: ShapeFromShading,
                 novel_view: Optional[_NovelView] = None) -> BatchItem:
     """Run one item (``model``: the batch's, which holds the database); a failure becomes a
     ``failed`` row (and one log line), never an exception."""
     start = time.perf_counter()
+    # an item's lighting.json (read by _read_item) makes its lighting given: no refined surface by default
+    expected = _expected_outputs(pipeline_cfg, mesh_formats, given=(folder / "lighting.json").is_file())
     if cfg.skip_done and all((target / name).is_file() for name in expected):
         return BatchItem(folder.name, "skipped", time.perf_counter() - start,
                          median_error_deg=_median_error(target / "metrics.json"))

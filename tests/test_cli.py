@@ -487,6 +487,8 @@ class TestBatch:
 
         photos, out = tmp_path / "photos", tmp_path / "r"
         write_item(photos / "a")
+        # a given lighting: no refined surface, so these are all the files a default run writes
+        io.write_lighting(photos / "a" / "lighting.json", natural_lightings(0.7)["uffizi_gallery"])
         (out / "a").mkdir(parents=True)
         for name in cli.REQUIRED_OUTPUTS:
             (out / "a" / name).write_text("{}")
@@ -498,6 +500,46 @@ class TestBatch:
         assert [r.status for r in deeper.items] == ["ok"]
         redone = cli.run_batch(compose_batch([f"input_dir={photos}", f"out={out}", "skip_done=false"]))
         assert [r.status for r in redone.items] == ["ok"]
+
+    def test_rerun_is_not_skipped_when_it_writes_more_files(self, tmp_path):
+        """An estimated lighting's refined surface gives depth, meshes and a novel view without
+        integrate=: a rerun asking for another mesh format, or an item lacking the depth files,
+        is not finished."""
+        import sfs_torch.cli as cli
+
+        photos, out = tmp_path / "photos", tmp_path / "r"
+        write_item(photos / "a", radius=12.0, size=32)
+        fast = [f"input_dir={photos}", f"out={out}", "refine_rounds=0", "refine.iterations=5"]
+        first = cli.run_batch(compose_batch(fast))
+        assert [r.status for r in first.items] == ["ok"]
+        assert (out / "a" / "mesh.ply").is_file() and not (out / "a" / "mesh.glb").exists()
+        # the same run again finds every file it would write
+        assert [r.status for r in cli.run_batch(compose_batch(fast)).items] == ["skipped"]
+        again = cli.run_batch(compose_batch([*fast, "mesh_formats=[ply,glb]"]))
+        assert [r.status for r in again.items] == ["ok"]
+        assert (out / "a" / "mesh.glb").is_file()
+        (out / "a" / "depth.npy").unlink()
+        assert [r.status for r in cli.run_batch(compose_batch(fast)).items] == ["ok"]
+
+    @pytest.mark.parametrize(
+        "overrides, given, depth",
+        [
+            ([], False, True),  # the joint refinement's surface
+            ([], True, False),  # a given lighting: the pixel model
+            (["integrate=l2"], True, True),
+            (["refine.when=never"], False, False),
+            (["refine.when=known"], False, False),
+            (["refine.when=known", "refine.model=surface"], True, True),
+            (["refine.model=pixel"], False, False),
+            (["refine.optimise_lighting=false"], False, False),
+        ],
+    )
+    def test_expected_outputs_follow_the_depth_rule(self, overrides, given, depth):
+        import sfs_torch.cli as cli
+
+        pipeline_cfg = cli._pipeline_config(compose_batch(overrides))
+        expected = cli._expected_outputs(pipeline_cfg, ("ply", "glb"), given)
+        assert ("mesh.glb" in expected) is depth and ("depth.npy" in expected) is depth
 
 
 class TestNovelViewRenderer:
@@ -547,8 +589,20 @@ class TestNovelViewRenderer:
         import sfs_torch.cli as cli
 
         monkeypatch.setattr(cli, "gl_context", lambda: pytest.fail("no novel view is drawn: no context needed"))
-        cfg = compose_batch(["novel_view.renderer=pyrender", "out=x"])
+        cfg = compose_batch(["novel_view.renderer=pyrender", "refine=never", "out=x"])  # no depth map at all
         assert cli._novel_view(cfg, cli._pipeline_config(cfg)).choice is None
+        cfg = compose_batch(["novel_view.renderer=pyrender", "out=x"])  # a given lighting: per-pixel normals
+        assert cli._novel_view(cfg, cli._pipeline_config(cfg), given=True).choice is None
+
+    def test_the_refined_surface_is_drawn_by_the_renderer_asked_for(self):
+        # an estimated lighting's refined surface is a depth map without integrate=: its
+        # novel view used to ignore novel_view.renderer (always the ray caster)
+        import sfs_torch.cli as cli
+
+        cfg = compose_batch(["novel_view.renderer=embree", "out=x"])
+        for given in (False, None):
+            view = cli._novel_view(cfg, cli._pipeline_config(cfg), given=given)
+            assert view.choice is not None and view.choice.name == "embree"
 
     @pytest.mark.parametrize("override, match", [
         ("novel_view.resolution=0", "novel_view.resolution must be a positive integer"),
