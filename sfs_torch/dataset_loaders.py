@@ -103,6 +103,8 @@ class Intrinsics:
 # the principal point in OpenCV's convention (pot2's K.txt; pot1's differs by 0.75 px in cy).
 _DILIGENT_K = np.array([[3772.077471010730, 0.0, 305.875], [0.0, 3759.005431071330, 255.125], [0.0, 0.0, 1.0]])
 DILIGENT_INTRINSICS = Intrinsics.from_matrix(_DILIGENT_K, "DiLiGenT's published K")
+# (H, W) of the images DILIGENT_INTRINSICS belongs to
+_DILIGENT_SIZE = (512, 612)
 
 
 def height_to_normals(height: Tensor, mask: Optional[Tensor] = None) -> Tensor:
@@ -331,8 +333,9 @@ def load_diligent(
       image as ``colour * max(0, n . l)``: the direction and relative intensity come from the
       calibration, the scale (albedo over the normalisation) from the image.
     - focal and principal_point: from ``K.txt`` (:func:`read_intrinsics`) in the object's
-      folder, else beside it in ``pmsData``, else :data:`DILIGENT_INTRINSICS`; ``None`` with
-      ``perspective=False``.
+      folder, else beside it in ``pmsData``, else :data:`DILIGENT_INTRINSICS` (the camera of
+      the release's 612x512 images: an object of another size needs its ``K.txt``); ``None``
+      with ``perspective=False``.
     - name ``<obj>|<photograph stem>``, shape ``<obj>``, lighting_name the photograph's stem.
 
     Args:
@@ -348,7 +351,9 @@ def load_diligent(
     Raises:
         FileNotFoundError: ``root``, ``pmsData``, an object or one of its files is missing.
         ValueError: a light file is malformed or its row count disagrees with
-            ``filenames.txt``, a light index is out of range, or an intrinsics file is bad.
+            ``filenames.txt``, a light index is out of range, a light or object is given
+            twice, an intrinsics file is bad, or an object without ``K.txt`` is not 612x512
+            (with ``perspective=True``).
             Unreadable ``Normal_gt.mat`` files and size mismatches are reported (as
             ``ValueError``) when their object is reached.
     """
@@ -392,6 +397,16 @@ def _diligent_object(name: str, data: Path, lights: Optional[Sequence[int]], per
     if perspective:
         k_path = next((p for p in (folder / "K.txt", data / "K.txt") if p.is_file()), None)
         camera = DILIGENT_INTRINSICS if k_path is None else read_intrinsics(k_path)
+        if k_path is None:
+            # the published camera is that of the release's images: on any other size its
+            # principal point lies off centre or outside the image, silently
+            size = tuple(read_mask(folder / "mask.png").shape[-2:])
+            if size != _DILIGENT_SIZE:
+                raise ValueError(
+                    f"{what}: '{folder}' holds {size[1]}x{size[0]} images but has no K.txt, and DILIGENT_INTRINSICS "
+                    f"are for DiLiGenT's {_DILIGENT_SIZE[1]}x{_DILIGENT_SIZE[0]} images: put this copy's K.txt in "
+                    "the object's folder (or pmsData), or pass perspective=False"
+                )
     return _DiligentObject(name, folder, photographs, directions, intensities, chosen, camera)
 
 
@@ -454,6 +469,8 @@ def _light_indices(lights: Sequence[int], count: int, folder: Path) -> List[int]
             raise ValueError(f"lights[{i}] must be an integer light index, got {index!r}")
         if not 0 <= int(index) < count:
             raise ValueError(f"lights[{i}] = {index} is out of range: '{folder}' has {count} lights (indices 0 to {count - 1})")
+        if int(index) in chosen:  # one case per light: a repeat would give two cases of one name
+            raise ValueError(f"lights[{i}] = {index} repeats lights[{chosen.index(int(index))}]: give each light once")
         chosen.append(int(index))
     return chosen
 
@@ -596,12 +613,14 @@ def _choose(wanted: Optional[Sequence[str]], available: List[str], folder: Path,
             raise ValueError(f"'{folder}' holds no object folder")
         return available
     chosen = _as_list(wanted, name)
-    for item in chosen:
+    for i, item in enumerate(chosen):
         if item not in available:
             raise FileNotFoundError(
                 f"{name}: no object '{item}' (folder '{folder / (str(item) + suffix)}'); "
                 f"available: {', '.join(available) or 'none'}"
             )
+        if item in chosen[:i]:  # one object's cases twice, under the same names
+            raise ValueError(f"{name}[{i}] names the object '{item}' again ({name}[{chosen.index(item)}]): give each once")
     return chosen
 
 

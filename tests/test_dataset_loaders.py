@@ -174,6 +174,8 @@ class TestLoadMitBerkeley:
         assert [s.shape for s in load_mit_berkeley(tmp_path, objects="b")] == ["b"]
         with pytest.raises(FileNotFoundError, match="no object 'c'.*available: a, b"):
             load_mit_berkeley(tmp_path, objects=["a", "c"])
+        with pytest.raises(ValueError, match=r"objects\[1\] names the object 'a' again"):
+            load_mit_berkeley(tmp_path, objects=["a", "a"])
 
     def test_release_data_folder(self, tmp_path):
         _mit_fixture(tmp_path / "data")
@@ -241,7 +243,8 @@ def _diligent_fixture(root, name="ball", size=(40, 48)):
 class TestLoadDiligent:
     def test_cases(self, tmp_path):
         folder, normals, mask = _diligent_fixture(tmp_path)
-        scenes = list(load_diligent(tmp_path))
+        # not DiLiGenT's 612x512 and no K.txt: orthographic (the camera: test_published_intrinsics_*)
+        scenes = list(load_diligent(tmp_path, perspective=False))
         assert [s.name for s in scenes] == ["ball|001", "ball|002", "ball|003"]
         for k, scene in enumerate(scenes):
             assert (scene.shape, scene.lighting_name) == ("ball", f"{k + 1:03d}")
@@ -257,13 +260,30 @@ class TestLoadDiligent:
             # the known lighting: the light's direction with the colour albedo / scale
             expected = directional_light_sh(torch.tensor(_DIRECTIONS[k], dtype=torch.float64), _ALBEDO * 0.7 / scale)
             assert torch.allclose(scene.lighting[0].double(), expected, atol=1e-4)
-            # published intrinsics, perspective
-            assert scene.focal == DILIGENT_INTRINSICS.focal
-            assert scene.principal_point == DILIGENT_INTRINSICS.principal_point
+            assert scene.focal is None and scene.principal_point is None
 
     def test_published_intrinsics(self):
         assert DILIGENT_INTRINSICS.focal == pytest.approx(3765.54, abs=0.01)
         assert DILIGENT_INTRINSICS.principal_point == pytest.approx((306.375, 255.625))
+
+    def test_published_intrinsics_only_for_the_release_size(self, tmp_path):
+        _diligent_fixture(tmp_path / "release", size=(512, 612))
+        scene = next(iter(load_diligent(tmp_path / "release", lights=[0])))
+        assert scene.focal == DILIGENT_INTRINSICS.focal
+        assert scene.principal_point == DILIGENT_INTRINSICS.principal_point
+        # a resized copy, or any other size, without its K.txt: the published camera does not fit
+        for name, size in (("half", (256, 306)), ("small", (40, 48))):
+            folder, *_ = _diligent_fixture(tmp_path / name, size=size)
+            with pytest.raises(ValueError, match=rf"'{folder}' holds {size[1]}x{size[0]} images but has no K.txt"):
+                load_diligent(tmp_path / name)  # raised by the call, not when iterating
+            assert len(list(load_diligent(tmp_path / name, lights=[0], perspective=False))) == 1
+
+    def test_repeated_lights_or_objects(self, tmp_path):
+        _diligent_fixture(tmp_path)
+        with pytest.raises(ValueError, match=r"lights\[2\] = 0 repeats lights\[0\]"):
+            load_diligent(tmp_path, lights=[0, 1, 0], perspective=False)
+        with pytest.raises(ValueError, match=r"objects\[1\] names the object 'ball' again \(objects\[0\]\)"):
+            load_diligent(tmp_path, objects=["ball", "ballPNG"], perspective=False)
 
     def test_lights_objects_and_orthographic(self, tmp_path):
         _diligent_fixture(tmp_path, "cat")
@@ -294,7 +314,7 @@ class TestLoadDiligent:
     def test_missing_photograph(self, tmp_path):
         folder, *_ = _diligent_fixture(tmp_path)
         (folder / "002.png").unlink()
-        assert len(list(load_diligent(tmp_path, lights=[0, 2]))) == 2
+        assert len(list(load_diligent(tmp_path, lights=[0, 2], perspective=False))) == 2
         with pytest.raises(FileNotFoundError, match="002.png"):
             load_diligent(tmp_path)
 
