@@ -22,6 +22,7 @@ on stderr and exit code 2. The options are documented in ``docs/evaluation.md``.
 from __future__ import annotations
 
 import csv
+import hashlib
 import io as _io
 import json
 import logging
@@ -690,8 +691,16 @@ def _write_atomic(path: Path, text: str) -> None:
 
 
 def _slug(name: str) -> str:
-    """A case name as a file name: ``shape|lighting`` -> ``shape__lighting``."""
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", name.replace("|", "__")).strip(".") or "case"
+    """A case name as a file name, one per name: ``shape|lighting`` -> ``shape__lighting``.
+
+    A name the file name does not spell back (``"a b"``, ``"a+b"`` and ``"a_b"`` all become
+    ``a_b``) gets ``-`` and the first 8 hex digits of its SHA-1 appended, so that no two
+    cases share a figure; the suffix is the same in every run, so a resumed run finds it.
+    """
+    slug = re.sub(r"[^A-Za-z0-9._-]+", "_", name.replace("|", "__")).strip(".") or "case"
+    if slug == name.replace("|", "__") and slug.replace("__", "|") == name:
+        return slug
+    return f"{slug}-{hashlib.sha1(name.encode('utf-8')).hexdigest()[:8]}"
 
 
 def _figure(out: Path, scene: Scene, results: Mapping[str, MethodResult], partial: bool) -> Path:

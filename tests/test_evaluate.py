@@ -244,6 +244,32 @@ class TestFolderWithoutGroundTruth:
         assert sorted(p.name for p in (out / "figures").iterdir()) == ["lit.png", "plain.png"]
 
 
+class TestFigureNames:
+    def test_one_figure_per_case(self, tmp_path):
+        normals, mask = sphere(32, 12.0)
+        image = (render_sh(normals[None], natural_lightings(0.7)["uffizi_gallery"][None])[0] * mask).clamp(0, 1)
+        cases = ("a b", "a+b", "a_b")  # one sanitised name, a_b
+        for case in cases:
+            (tmp_path / "data" / case).mkdir(parents=True)
+            io.write_image(tmp_path / "data" / case / "image.png", image, bits=16)
+            io.write_image(tmp_path / "data" / case / "mask.png", mask.float(), srgb=False)
+        out = tmp_path / "out"
+        run_eval([*TINY, "dataset=folder", f"dataset.root={tmp_path / 'data'}", "methods=[silhouette,flat]",
+                  f"out={out}"])
+        figures = sorted(p.name for p in (out / "figures").iterdir())
+        assert len(figures) == 3
+        assert "a_b.png" in figures  # the name that spells itself is unchanged
+
+    @pytest.mark.parametrize("names", [("a b", "a+b", "a_b"), ("a|b", "a__b"), ("a_|b", "a|_b"), ("", "case"),
+                                       (".a", "a")])
+    def test_distinct_names_give_distinct_files(self, names):
+        assert len({ev._slug(n) for n in names}) == len(names)
+
+    def test_ordinary_names_unchanged(self):
+        assert ev._slug("sphere|grace_cathedral") == "sphere__grace_cathedral"
+        assert ev._slug("ball|001") == "ball__001" and ev._slug("lit") == "lit"
+
+
 class TestMethods:
     def scene(self, focal=None):
         normals, mask = sphere(32, 12.0)
