@@ -32,6 +32,8 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
+from ._checks import is_number
+
 __all__ = [
     "Shape",
     "ShapeSplit",
@@ -423,12 +425,21 @@ def split_shapes(groups: Dict[str, List[str]], weights: Dict[str, float], n_trai
     Each group's names are shuffled by ``seed``; the evaluation shapes are drawn first
     (so they do not depend on ``n_train``), then the training shapes from the rest.
     Both sets follow the group ``weights`` (largest remainder; a group that runs out
-    passes its share on to the others).
+    passes its share on to the others). A group of weight 0 gives no shapes.
 
     Raises:
-        ValueError: fewer shapes available than ``n_train + n_eval``.
+        ValueError: a group has no weight, a weight is negative or not finite, all are 0,
+            or fewer shapes of positive weight are available than ``n_train + n_eval``.
     """
-    total = sum(len(v) for v in groups.values())
+    missing = sorted(set(groups) - set(weights))
+    if missing:
+        raise ValueError(f"weights must give every group a weight, missing {missing}")
+    bad = {g: w for g, w in weights.items() if not is_number(w, 0.0)}
+    if bad:
+        raise ValueError(f"weights must be finite numbers >= 0, got {bad}")
+    if not any(weights[g] > 0 for g in groups):
+        raise ValueError(f"weights must be positive for some group, got {weights}")
+    total = sum(len(v) for g, v in groups.items() if weights[g] > 0)
     if n_train < 1 or n_eval < 0 or n_train + n_eval > total:
         raise ValueError(f"n_shapes + n_eval_shapes must be in [1, {total}], got {n_train} + {n_eval}")
     rng = np.random.default_rng(np.random.SeedSequence([0x5917, int(seed)]))
@@ -442,7 +453,8 @@ def _draw(queues: Dict[str, List[str]], weights: Dict[str, float], n: int) -> Li
     counts = {g: 0 for g in queues}
     remaining = n
     while remaining > 0:
-        open_groups = [g for g in queues if len(queues[g]) > counts[g]]
+        # Zero-weight groups stay out: with them alone open, the shares would be 0/0
+        open_groups = [g for g in queues if weights[g] > 0 and len(queues[g]) > counts[g]]
         w = np.array([weights[g] for g in open_groups], np.float64)
         share = remaining * w / w.sum()
         take = np.floor(share).astype(int)

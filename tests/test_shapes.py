@@ -9,6 +9,7 @@ from sfs_torch import shapes
 from sfs_torch.shapes import (
     COLLECTIONS,
     MeshSourceError,
+    ShapeSplit,
     blobby_mesh,
     collection_names,
     fetch_sources,
@@ -151,6 +152,23 @@ class TestSplitShapes:
     def test_exception(self):
         with pytest.raises(ValueError, match="n_shapes"):
             split_shapes(self.GROUPS, self.WEIGHTS, 250, 10, 0)
+
+    def test_zero_weight_group_gives_no_shapes(self):
+        # used to spin for ever once only zero-weight groups were left (shares 0/0)
+        split = split_shapes({"a": ["a/1"], "b": ["b/1", "b/2", "b/3"]}, {"a": 1.0, "b": 0.0}, 1, 0, 0)
+        assert split == ShapeSplit(train=["a/1"], evaluation=[])
+        with pytest.raises(ValueError, match=r"must be in \[1, 1\], got 2 \+ 0"):
+            split_shapes({"a": ["a/1"], "b": ["b/1", "b/2", "b/3"]}, {"a": 1.0, "b": 0.0}, 2, 0, 0)
+
+    @pytest.mark.parametrize("weights, match", [
+        ({"a": 0.0}, r"positive for some group, got \{'a': 0.0\}"),
+        ({"a": -1.0}, r"finite numbers >= 0, got \{'a': -1.0\}"),
+        ({"a": float("nan")}, r"finite numbers >= 0, got \{'a': nan\}"),
+        ({"b": 1.0}, r"every group a weight, missing \['a'\]"),
+    ])
+    def test_bad_weights(self, weights, match):
+        with pytest.raises(ValueError, match=match):
+            split_shapes({"a": ["a/1", "a/2"]}, weights, 1, 0, 0)
 
 
 class TestCollections:
