@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ._checks import is_integer
 from .forest import VMFForest
 from .geometry_db import _sha256, cache_dir
 
@@ -51,7 +52,7 @@ def load_forest(path: Path, device: torch.device) -> Optional[VMFForest]:
         forest = VMFForest.load(path)
         if not (bool(torch.isfinite(forest.mean_).all()) and bool(torch.isfinite(forest.kappa_).all())):
             raise ValueError("non-finite leaves")
-    except (OSError, ValueError, RuntimeError, KeyError) as err:
+    except Exception as err:  # whatever fails to load would fail every later run: corrupt
         log.warning("deleting unusable cached forest %s (%s); training a new one", path, err)
         path.unlink(missing_ok=True)
         _checksum_path(path).unlink(missing_ok=True)
@@ -74,7 +75,14 @@ def save_forest(forest: VMFForest, path: Path) -> None:
 
 
 def evict_forests(folder: Path, keep: int) -> None:
-    """Delete all but the ``keep`` most recently used forests in ``folder``."""
+    """Delete all but the ``keep`` most recently used forests in ``folder``.
+
+    Raises:
+        ValueError: ``keep`` is not an integer >= 0.
+    """
+    # a bad keep would slice wrongly (None keeps nothing, -1 deletes only the oldest)
+    if not is_integer(keep, 0):
+        raise ValueError(f"keep must be an integer >= 0, got {keep!r}")
 
     def last_used(path: Path) -> float:
         try:
