@@ -39,7 +39,7 @@ from torch import Tensor
 
 from ._checks import check_finite
 from .lighting import render_sh, rotate_sh
-from .rendering import _check_view, render_normals
+from .rendering import _check_mesh, _check_view, render_normals
 
 __all__ = [
     "RENDERERS",
@@ -350,10 +350,7 @@ def _check_mesh_and_lighting(mesh: trimesh.Trimesh, lighting: Tensor) -> None:
         raise ValueError(f"lighting must be a (3, 9) tensor, got {got}")
     # NaN or inf would shade every pixel NaN
     check_finite(lighting, "lighting")
-    if not isinstance(mesh, trimesh.Trimesh):
-        # trimesh.load returns a Scene for .glb files, the format write_mesh writes
-        raise TypeError(f"mesh must be a trimesh.Trimesh, got {type(mesh).__name__} (for a trimesh.Scene, pass "
-                        "scene.to_mesh() or load the file with trimesh.load_mesh)")
+    _check_mesh(mesh)
     if len(mesh.faces) == 0:
         raise ValueError("mesh has no faces to render")
 

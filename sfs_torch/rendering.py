@@ -25,7 +25,8 @@ import torch
 import trimesh
 from torch import Tensor
 
-from .camera import pixel_grid
+from ._checks import is_number
+from .camera import _positive_focal, pixel_grid
 
 __all__ = ["NormalRender", "render_normals", "random_view_rotations", "camera_distance"]
 
@@ -70,15 +71,25 @@ def _check_view(
         raise ValueError("rotation must be a proper rotation matrix (R R^T = I, det R = 1)")
     if not (isinstance(resolution, (int, np.integer)) and resolution > 0):
         raise ValueError(f"resolution must be a positive integer, got {resolution!r}")
-    if focal is not None and not focal > 0:
-        raise ValueError(f"focal must be a positive focal length in pixels or None, got {focal}")
-    if not scale > 0:
-        raise ValueError(f"scale must be positive, got {scale}")
+    if focal is not None:
+        _positive_focal(focal)  # inf would make camera_distance divide by zero
+    if not is_number(scale, 0.0, strict=True):
+        raise ValueError(f"scale must be a finite positive number, got {scale!r}")
     if distance is None:
         distance = 3.0 if focal is None else camera_distance(resolution, focal, scale)
-    if not distance > 0:
-        raise ValueError(f"distance must be positive, got {distance}")
+    # From inside the unit sphere the mesh is normalised into, rays start within the object
+    # and hit back faces; from infinitely far, nothing (orthographic rays start at the camera)
+    if not is_number(distance, 1.0, strict=True):
+        raise ValueError(f"distance must be a finite number > 1 (outside the unit sphere), got {distance!r}")
     return rot, float(distance)
+
+
+def _check_mesh(mesh: trimesh.Trimesh) -> None:
+    """The ``mesh`` argument of a renderer: a ``trimesh.Trimesh``."""
+    if not isinstance(mesh, trimesh.Trimesh):
+        # trimesh.load returns a Scene for .glb files, the format write_mesh writes
+        raise TypeError(f"mesh must be a trimesh.Trimesh, got {type(mesh).__name__} (for a trimesh.Scene, pass "
+                        "scene.to_mesh() or load the file with trimesh.load_mesh)")
 
 
 def render_normals(
@@ -100,14 +111,16 @@ def render_normals(
         resolution: image height and width in pixels.
         focal: focal length in pixels for a perspective camera; ``None`` for orthographic.
         distance: camera-centre distance from the world origin along the view axis, in
-            mesh units. Default: 3 for orthographic (it only offsets the depth),
-            :func:`camera_distance` for perspective.
-        scale: radius of the unit sphere in the image, as a fraction of ``resolution / 2``.
+            mesh units, finite and > 1 (outside the unit sphere). Default: 3 for
+            orthographic (it only offsets the depth), :func:`camera_distance` for perspective.
+        scale: radius of the unit sphere in the image, as a fraction of ``resolution / 2``;
+            finite and positive.
 
     Returns:
         :class:`NormalRender` with ``(3, R, R)`` normals, ``(1, R, R)`` mask and depth.
 
     Raises:
+        TypeError: ``mesh`` is not a ``trimesh.Trimesh`` (a ``trimesh.Scene`` included).
         ValueError: a bad rotation, resolution, focal, distance or scale.
 
     Example:
@@ -116,6 +129,7 @@ def render_normals(
         >>> r.normals.shape, bool(r.mask[0, 16, 16]), round(float(r.normals[2, 16, 16]), 2)
         (torch.Size([3, 32, 32]), True, 1.0)
     """
+    _check_mesh(mesh)
     rot, distance = _check_view(rotation, resolution, focal, distance, scale)
     uv = pixel_grid(resolution, resolution, dtype=torch.float64).flatten(1).T.numpy()  # (R*R, 2)
     n_pix = uv.shape[0]

@@ -146,6 +146,23 @@ class TestRenderNormals:
         with pytest.raises(ValueError, match="scale"):
             render_normals(sphere, torch.eye(3), 16, scale=0.0)
 
+    def test_scene_refused(self, sphere):
+        # a .glb loads as a Scene, which has no ray intersector
+        with pytest.raises(TypeError, match=r"got Scene \(for a trimesh.Scene, pass scene.to_mesh\(\)"):
+            render_normals(trimesh.Scene(sphere), torch.eye(3), 16)
+
+    @pytest.mark.parametrize("kwargs, match", [
+        (dict(focal=math.inf), "focal must be a positive focal length in pixels, got inf"),
+        (dict(scale=math.inf), "scale must be a finite positive number, got inf"),
+        (dict(distance=0.5), r"distance must be a finite number > 1 \(outside the unit sphere\), got 0.5"),
+        (dict(distance=1.0), r"distance must be a finite number > 1 \(outside the unit sphere\), got 1.0"),
+        (dict(distance=math.inf), "distance must be a finite number > 1 .*, got inf"),
+        (dict(focal=50.0, distance=0.5), "distance must be a finite number > 1 .*, got 0.5"),
+    ])
+    def test_bad_camera(self, sphere, kwargs, match):
+        with pytest.raises(ValueError, match=match):
+            render_normals(sphere, torch.eye(3), 16, **kwargs)
+
 
 class TestCameraDistance:
     def test_outline_radius(self):
