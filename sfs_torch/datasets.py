@@ -23,7 +23,7 @@ import trimesh
 from torch import Tensor
 
 from . import image_formation as formation_ops
-from ._checks import is_integer, is_number
+from ._checks import check_mask, check_same_size, check_shape, is_integer, is_number
 from .camera import pixel_grid
 from .geometry_db import DatabaseConfig, evaluation_shapes
 from .lighting import natural_lightings, render_sh, render_sphere, rotate_sh
@@ -126,8 +126,8 @@ class Scene:
 
 def evaluation_lightings(n: int = 3, albedo: float = 0.8) -> List[Tuple[str, Tensor]]:
     """The first ``n`` R&H probes of :data:`EVALUATION_LIGHTINGS` (report on these; tune on none)."""
-    if not 1 <= n <= len(EVALUATION_LIGHTINGS):
-        raise ValueError(f"n must be in [1, {len(EVALUATION_LIGHTINGS)}], got {n}")
+    if not is_integer(n, 1, len(EVALUATION_LIGHTINGS)):
+        raise ValueError(f"n must be an integer in [1, {len(EVALUATION_LIGHTINGS)}], got {n!r}")
     probes = natural_lightings(albedo)
     return [(name, probes[name]) for name in EVALUATION_LIGHTINGS[:n]]
 
@@ -138,6 +138,8 @@ def validation_lightings(n: int, seed: int = 0, exposure: Optional[float] = None
     Each is scaled so that the 95th percentile of a lit sphere is ``exposure``, by default
     0.9 (a well exposed image; the R&H probes of :func:`evaluation_lightings` sit at 0.10-0.35).
     """
+    if not is_integer(n, 0):
+        raise ValueError(f"n must be an integer >= 0, got {n!r}")
     exposure = 0.9 if exposure is None else exposure
     if not is_number(exposure, 0, strict=True):
         raise ValueError(f"exposure must be a number > 0, got {exposure}")
@@ -160,8 +162,8 @@ def scene_shapes(n: int, side: str = "test", database: DatabaseConfig = Database
     if side not in ("test", "validation"):
         raise ValueError(f"side must be 'test' or 'validation', got {side!r}")
     pool = evaluation_shapes(database)[0 if side == "test" else 1 :: 2]
-    if not 0 <= n <= len(pool):
-        raise ValueError(f"n must be in [0, {len(pool)}] on the {side} side, got {n}")
+    if not is_integer(n, 0, len(pool)):
+        raise ValueError(f"n must be an integer in [0, {len(pool)}] on the {side} side, got {n!r}")
     chosen = pool[:: max(1, len(pool) // max(n, 1))][:n]
     if sphere:
         chosen = [Shape("sphere", normalize_mesh(trimesh.creation.icosphere(subdivisions=5)))] + chosen
@@ -196,8 +198,16 @@ def form_image(normals: Tensor, mask: Tensor, sh: Tensor, config: FormationConfi
     ``gains`` are the :func:`camera_gains` (default: none); shadows need the view's
     :func:`view_visibility`; the specular lobe's view vectors need ``focal`` for a
     perspective camera. ``generator`` draws the noise.
+
+    Raises:
+        ValueError: wrong shapes, sizes that differ, or a mask not all 0 and 1 (a soft
+            mask would scale the image).
     """
-    inside = mask[0, 0].bool()
+    check_shape(normals, "normals", "1 3 H W")
+    check_shape(sh, "sh", "1 3 9")
+    mask = check_mask(mask, "mask", allow_full=True, allow_empty=True)
+    check_same_size(normals, "normals", mask, "mask")
+    inside = mask[0, 0]
     n = normals[0].permute(1, 2, 0)[inside].double()  # (N, 3)
     light = sh[0].double()
     if config.shadows:
@@ -255,15 +265,32 @@ def synthetic_scenes(
         focal: perspective focal length in pixels; ``None`` for orthographic.
         formation: the image formation.
         lights_per_shape: shape ``k`` gets lightings ``k m .. (k + 1) m - 1`` (cycling);
-            ``None`` gives every shape every lighting.
+            ``None`` gives every shape every lighting. At most ``len(lightings)``, so that
+            a shape never gets a lighting twice (scene names are unique).
+
+    Raises:
+        ValueError: no lightings, or ``lights_per_shape`` not an integer in ``[1, len(lightings)]``.
     """
+    # checked here, not on the first next() of the generator
+    lightings = list(lightings)
+    if not lightings:
+        raise ValueError("lightings must hold at least one (name, (3, 9)) pair, got none")
+    if lights_per_shape is not None and not is_integer(lights_per_shape, 1, len(lightings)):
+        raise ValueError(f"lights_per_shape must be an integer in [1, {len(lightings)}] (the number of "
+                         f"lightings), got {lights_per_shape!r}")
+    return _synthetic_scenes(shapes, lightings, resolution, focal, formation, lights_per_shape, seed)
+
+
+def _synthetic_scenes(shapes: Sequence[Shape], lightings: List[Tuple[str, Tensor]], resolution: int,
+                      focal: Optional[float], formation: FormationConfig, lights_per_shape: Optional[int],
+                      seed: int) -> Iterator[Scene]:
     for k, shape in enumerate(shapes):
         rotation = random_view_rotations(1, _generator(seed, shape.name))[0]
         view = render_normals(shape.mesh, rotation, resolution, focal=focal)
         normals, mask = view.normals[None], view.mask[None]
         visibility = view_visibility(view, shape.mesh, rotation, formation) if formation.shadows else None
         if lights_per_shape is None:
-            chosen = list(lightings)
+            chosen = lightings
         else:
             chosen = [lightings[(k * lights_per_shape + i) % len(lightings)] for i in range(lights_per_shape)]
         for light_name, sh in chosen:

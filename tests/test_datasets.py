@@ -112,6 +112,25 @@ class TestSyntheticScenes:
         scenes = list(synthetic_scenes(_shapes(), lights, resolution=32, lights_per_shape=2))
         assert [s.lighting_name for s in scenes] == [name for name, _ in lights]
 
+    @pytest.mark.parametrize("lights, per_shape, match", [
+        (2, 3, r"lights_per_shape must be an integer in \[1, 2\] \(the number of lightings\), got 3"),
+        (2, 0, r"lights_per_shape must be an integer in \[1, 2\] .*, got 0"),
+        (0, 1, "lightings must hold at least one"),
+        (0, None, "lightings must hold at least one"),
+    ])
+    def test_bad_lights_per_shape(self, lights, per_shape, match):
+        # 3 of 2 lightings gave one shape a lighting twice: duplicate scene names
+        with pytest.raises(ValueError, match=match):
+            synthetic_scenes(_shapes(), evaluation_lightings(2)[:lights], resolution=32, lights_per_shape=per_shape)
+
+    def test_form_image_checks_the_mask(self):
+        view = render_normals(_shapes()[0].mesh, torch.eye(3), 16)
+        normals, mask, sh = view.normals[None], view.mask[None], LIGHT[0][1][None]
+        with pytest.raises(ValueError, match="mask must be boolean or hold only 0 and 1"):
+            form_image(normals, mask * 0.5, sh, FormationConfig(), torch.Generator())
+        with pytest.raises(ValueError, match=r"normals and mask must have the same .*\(1, 3, 16, 16\) and \(1, 1, 8, 8\)"):
+            form_image(normals, mask[..., :8, :8], sh, FormationConfig(), torch.Generator())
+
 
 class TestSides:
     def test_validation_lightings_are_not_rh(self):
@@ -139,6 +158,16 @@ class TestSides:
         test = [s.name for s in scene_shapes(2, "test", cfg)]
         validation = [s.name for s in scene_shapes(2, "validation", cfg)]
         assert test == every[0::2] and validation == every[1::2]
+
+    @pytest.mark.parametrize("make, n, match", [
+        (validation_lightings, -2, "n must be an integer >= 0, got -2"),
+        (validation_lightings, 2.5, "n must be an integer >= 0, got 2.5"),
+        (evaluation_lightings, 2.5, r"n must be an integer in \[1, 7\], got 2.5"),
+        (scene_shapes, 2.5, r"n must be an integer in \[0, \d+\] on the test side, got 2.5"),
+    ])
+    def test_bad_n(self, make, n, match):
+        with pytest.raises(ValueError, match=match):
+            make(n)
 
     def test_bad_side(self):
         with pytest.raises(ValueError, match="side must be"):
