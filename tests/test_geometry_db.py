@@ -193,10 +193,13 @@ class TestLoadDatabase:
 
 
 class TestMeshSources:
-    def test_offline_default_collection_says_use_blobby(self, monkeypatch):
+    def test_offline_default_collection_says_use_blobby(self, monkeypatch, tmp_path):
         def offline(root, progress=True):
             raise MeshSourceError("could not download ... set `database.collection=blobby`")
 
+        # a cache of its own without the meshes: another test of this worker may have fetched them
+        monkeypatch.setenv("SFS_TORCH_CACHE", str(tmp_path))
+        monkeypatch.setattr(geometry_db, "sources_present", lambda root: False)
         monkeypatch.setattr(geometry_db, "fetch_sources", offline)
         with pytest.raises(MeshSourceError, match=r"database\.collection=blobby"):
             load_database(DatabaseConfig(), progress=False)
