@@ -332,9 +332,8 @@ def rasterize_normals(
         ValueError: a bad rotation, resolution, focal, distance or scale; a mesh without faces;
             no OpenGL context (:func:`gl_context` says why).
     """
+    _check_mesh(mesh)
     rot, distance = _check_view(rotation, resolution, focal, distance, scale)
-    if len(mesh.faces) == 0:
-        raise ValueError("mesh has no faces to render")
     with _LOCK:
         context = gl_context()
         if not context.available:
@@ -351,8 +350,6 @@ def _check_mesh_and_lighting(mesh: trimesh.Trimesh, lighting: Tensor) -> None:
     # NaN or inf would shade every pixel NaN
     check_finite(lighting, "lighting")
     _check_mesh(mesh)
-    if len(mesh.faces) == 0:
-        raise ValueError("mesh has no faces to render")
 
 
 def render_shaded(

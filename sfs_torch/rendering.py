@@ -85,11 +85,13 @@ def _check_view(
 
 
 def _check_mesh(mesh: trimesh.Trimesh) -> None:
-    """The ``mesh`` argument of a renderer: a ``trimesh.Trimesh``."""
+    """The ``mesh`` argument of a renderer: a ``trimesh.Trimesh`` with faces."""
     if not isinstance(mesh, trimesh.Trimesh):
         # trimesh.load returns a Scene for .glb files, the format write_mesh writes
         raise TypeError(f"mesh must be a trimesh.Trimesh, got {type(mesh).__name__} (for a trimesh.Scene, pass "
                         "scene.to_mesh() or load the file with trimesh.load_mesh)")
+    if len(mesh.faces) == 0:
+        raise ValueError("mesh has no faces to render")
 
 
 def render_normals(
@@ -121,7 +123,7 @@ def render_normals(
 
     Raises:
         TypeError: ``mesh`` is not a ``trimesh.Trimesh`` (a ``trimesh.Scene`` included).
-        ValueError: a bad rotation, resolution, focal, distance or scale.
+        ValueError: a mesh without faces, or a bad rotation, resolution, focal, distance or scale.
 
     Example:
         >>> sphere = trimesh.creation.icosphere(subdivisions=3)
