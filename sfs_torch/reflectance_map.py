@@ -23,7 +23,7 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import check_finite, check_mask, check_same_size, check_shape, check_unit_vectors, is_integer
-from .camera import _positive_focal, centroid_rotation
+from .camera import _check_camera, centroid_rotation
 from .lighting import fit_sh, fit_sh_vectors, rotate_sh, sh_basis_vectors
 from .silhouette import SilhouetteConfig, silhouette_distances
 
@@ -287,8 +287,7 @@ class LightingEstimator(nn.Module):
     ):
         super().__init__()
         self.config = _checked_config(config)
-        self.focal = None if focal is None else _positive_focal(focal)
-        self.principal_point = principal_point
+        self.focal, self.principal_point = _check_camera(focal, principal_point)
         self.silhouette = silhouette
 
     def forward(self, image: Tensor, mask: Tensor) -> Tensor:
