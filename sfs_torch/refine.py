@@ -371,7 +371,7 @@ def refinement_loss(
     pairs = _dx(normals).square().sum(1, keepdim=True) * ex + _dy(normals).square().sum(1, keepdim=True) * ey
     smooth = pairs.flatten(1).sum(1) / mask.flatten(1).sum(1).clamp_min(1).to(normals.dtype)
     prior = lighting_prior if lighting_prior is not None else load_lighting_prior(device=lighting.device)
-    light = lighting_prior_energy(lighting, prior.to(lighting.device, lighting.dtype))
+    light = lighting_prior_energy(lighting, prior)  # used in the lighting's device and dtype
     total = (photometric + cfg.normal_weight * normal_prior + cfg.contour_weight * contour
              + cfg.smoothness * smooth + cfg.lighting_weight * light)
     return RefinementLoss(total, photometric, normal_prior, contour, smooth, light)
