@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import List, Optional, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple, Union
 
 import torch
 import torch.nn.functional as F
@@ -761,7 +761,8 @@ def depth_to_normals(
     return from_batch(field_normals(s, m, focal, principal_point), single)
 
 
-def bas_relief_normals(normals: Tensor, scale: float, tilt_x: float = 0.0, tilt_y: float = 0.0) -> Tensor:
+def bas_relief_normals(normals: Tensor, scale: Union[float, Tensor], tilt_x: Union[float, Tensor] = 0.0,
+                       tilt_y: Union[float, Tensor] = 0.0) -> Tensor:
     r"""Normals of an orthographic surface after a generalised bas-relief transform.
 
     The surface ``z`` becomes ``scale * z + tilt_x * x + tilt_y * y`` (``x`` right, ``y``
@@ -773,14 +774,23 @@ def bas_relief_normals(normals: Tensor, scale: float, tilt_x: float = 0.0, tilt_
     Args:
         normals: :math:`(B, 3, H, W)` or :math:`(3, H, W)` camera-frame normals (0 where
             there is no surface).
+        scale, tilt_x, tilt_y: numbers, or :math:`(B,)` tensors for one transform per
+            image (differentiable).
 
     Returns:
         unit normals of the same shape, 0 where ``normals`` is 0.
     """
     normals, single = to_batch(normals, "normals", 3)
     check_shape(normals, "normals", "B 3 H W")
+    params = []
+    for name, value in (("scale", scale), ("tilt_x", tilt_x), ("tilt_y", tilt_y)):
+        if isinstance(value, Tensor) and value.numel() not in (1, normals.shape[0]):
+            raise ValueError(f"{name} must be a number or hold one value per image ({normals.shape[0]}), "
+                             f"got shape {tuple(value.shape)}")
+        params.append(torch.as_tensor(value, dtype=normals.dtype, device=normals.device).reshape(-1, 1, 1))
+    s, tx, ty = params
     x, y, z = normals.unbind(1)
-    return from_batch(F.normalize(torch.stack([scale * x - tilt_x * z, scale * y - tilt_y * z, z], 1), dim=1), single)
+    return from_batch(F.normalize(torch.stack([s * x - tx * z, s * y - ty * z, z], 1), dim=1), single)
 
 
 def median_slope(normals: Tensor, mask: Tensor) -> Tensor:

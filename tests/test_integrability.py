@@ -530,6 +530,18 @@ class TestBasReliefNormals:
         with pytest.raises(ValueError, match="normals"):
             bas_relief_normals(torch.zeros(1, 2, 4, 4), 1.2)
 
+    def test_one_transform_per_image_from_tensors(self):
+        _, n, _ = gaussian_bump(32)
+        batch = torch.stack([n, n])
+        scale, tilt = torch.tensor([1.2, 0.8], requires_grad=True), torch.tensor([0.1, -0.3])
+        out = bas_relief_normals(batch, scale, tilt, 0.2)
+        for b in range(2):
+            torch.testing.assert_close(out[b], bas_relief_normals(n, float(scale[b].detach()), float(tilt[b]), 0.2))
+        out.sum().backward()
+        assert scale.grad is not None and bool(torch.isfinite(scale.grad).all())
+        with pytest.raises(ValueError, match=r"tilt_x must be a number or hold one value per image \(2\)"):
+            bas_relief_normals(batch, 1.0, torch.zeros(3))
+
 
 class TestMedianSlope:
     def test_a_plane_reads_its_gradient(self):
