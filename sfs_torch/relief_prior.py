@@ -1,0 +1,343 @@
+r"""A learnt prior on shapes in their poses, against the bas-relief ambiguity (not in the paper).
+
+Under orthographic projection an estimated lighting leaves one transform of the surface
+undetermined: the generalised bas-relief transform ``z -> s z + t_x u + t_y v``
+(Belhumeur et al. 1999), which changes a uniform-albedo object's shading only through an
+albedo factor (:func:`sfs_torch.integrability.bas_relief_normals`). Neither the image,
+the estimated lighting nor the silhouette tells the tilt ``(t_x, t_y)`` (docs/pipeline.md
+measured seven such cues); what does is what shapes look like in their poses: a bone seen
+obliquely shows the rounded end that faces the camera, and a tilt that puts that end at
+the far side gives a surface no real object has.
+
+:class:`ReliefNet` is a small convolutional network that reads an object's normal field
+(cropped to the object and resampled to 64x64 by :func:`crop_to_object`) and returns the
+transform that takes it back to the shape it most likely is. It is trained by
+:func:`fit_relief_net` on normal maps of the database's training shapes in random views
+(:func:`relief_training_views`), each put through a random transform and a smooth random
+perturbation of its slopes, to minimise the mean angle between the corrected field and
+the true one. ``tools/build_relief_prior.py`` builds the weights that ship with the
+package (``data/relief_prior.npz``); :func:`load_relief_net` loads them.
+:func:`predict_relief` averages the network over the four mirror images of the field, so
+mirrored input gives a mirrored transform exactly.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from importlib import resources
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from ._checks import check_mask, check_same_size, check_shape, check_unit_vectors, is_integer, is_number, to_batch
+from .integrability import bas_relief_normals
+
+__all__ = [
+    "ReliefTransform", "ReliefNet", "ReliefPrior", "crop_to_object", "predict_relief", "apply_relief",
+    "compose_relief", "relief_depth", "load_relief_net", "save_relief_net", "fit_relief_net", "relief_training_views", "RELIEF_CROP_SIZE",
+]
+
+RELIEF_CROP_SIZE = 64
+# the square crop's side over the object's larger bounding-box side: a margin of background
+CROP_MARGIN = 1.1
+
+
+@dataclass
+class ReliefTransform:
+    """A generalised bas-relief transform per image: ``z -> scale z + tilt_x u + tilt_y v``.
+
+    Attributes:
+        scale: :math:`(B,)` depth scale, > 0.
+        tilt_x: :math:`(B,)` slope added along ``u`` (right).
+        tilt_y: :math:`(B,)` slope added along ``v`` (up).
+    """
+
+    scale: Tensor
+    tilt_x: Tensor
+    tilt_y: Tensor
+
+
+def compose_relief(first: ReliefTransform, then: ReliefTransform) -> ReliefTransform:
+    """The transform of applying ``first`` and then ``then``."""
+    return ReliefTransform(scale=first.scale * then.scale, tilt_x=then.scale * first.tilt_x + then.tilt_x,
+                           tilt_y=then.scale * first.tilt_y + then.tilt_y)
+
+
+def apply_relief(normals: Tensor, mask: Tensor, transform: ReliefTransform) -> Tensor:
+    """Normals after each image's transform: :math:`(B, 3, H, W), (B, 1, H, W) -> (B, 3, H, W)`, 0 off the mask."""
+    return bas_relief_normals(normals, transform.scale, transform.tilt_x, transform.tilt_y) * mask
+
+
+def relief_depth(depth: Tensor, mask: Tensor, transform: ReliefTransform) -> Tensor:
+    r"""An orthographic height map after each image's transform: :math:`(B, 1, H, W) -> (B, 1, H, W)`.
+
+    ``scale * depth + tilt_x * u + tilt_y * v`` on the mask (``u`` right, ``v`` up, in
+    pixels from the object's centroid, so the object keeps its mean height), 0 off it; its
+    normals are :func:`apply_relief`'s.
+    """
+    height, width = depth.shape[-2:]
+    v, u = torch.meshgrid(-torch.arange(height, dtype=depth.dtype, device=depth.device),
+                          torch.arange(width, dtype=depth.dtype, device=depth.device), indexing="ij")
+    out = torch.zeros_like(depth)
+    for b in range(depth.shape[0]):
+        m = mask[b, 0].bool()
+        plane = transform.tilt_x[b] * (u - u[m].mean()) + transform.tilt_y[b] * (v - v[m].mean())
+        out[b, 0] = torch.where(m, transform.scale[b] * depth[b, 0] + plane.to(depth.dtype), 0.0)
+    return out
+
+
+def crop_to_object(normals: Tensor, mask: Tensor, size: int = RELIEF_CROP_SIZE) -> Tensor:
+    r"""The network's input: :math:`(B, 3, H, W), (B, 1, H, W) -> (B, 4, size, size)`.
+
+    A square around each object's bounding box (its larger side times 1.1), resampled
+    bilinearly to ``size x size``: the three normal components, renormalised and 0 off
+    the object, and the object mask as a fourth channel (1 where the resampled mask is
+    above one half). The crop keeps the image's orientation, so the normal components and
+    the tilt keep their meaning.
+    """
+    crops = []
+    for b in range(normals.shape[0]):
+        m = mask[b, 0]
+        rows, cols = torch.nonzero(m, as_tuple=True)
+        cy, cx = (rows.min() + rows.max()) / 2, (cols.min() + cols.max()) / 2
+        half = max(int(rows.max() - rows.min()), int(cols.max() - cols.min())) / 2 * CROP_MARGIN + 1
+        height, width = m.shape
+        t = torch.linspace(-1, 1, size, dtype=torch.float64, device=normals.device)
+        gy = (cy + t * half) / max(height - 1, 1) * 2 - 1
+        gx = (cx + t * half) / max(width - 1, 1) * 2 - 1
+        grid = torch.stack(torch.meshgrid(gy, gx, indexing="ij")[::-1], -1)[None].float()
+        fields = torch.cat([normals[b] * m, m[None].to(normals.dtype)])[None].float()
+        sampled = F.grid_sample(fields, grid, mode="bilinear", align_corners=True)[0]
+        inside = sampled[3] > 0.5
+        n = sampled[:3] / sampled[:3].norm(dim=0, keepdim=True).clamp_min(1e-6)
+        crops.append(torch.cat([n * inside, inside[None].float()]))
+    return torch.stack(crops)
+
+
+class ReliefNet(nn.Module):
+    """The network: :math:`(B, 4, 64, 64) -> (B, 3)`: ``(log scale, tilt_x, tilt_y)`` of the
+    transform that corrects the cropped field (:func:`crop_to_object`).
+
+    Five 3x3 convolutions (32, 32, 64, 64, 128 channels, the last four of stride 2), each
+    with group normalisation and ReLU, then a fully connected layer of ``hidden`` units:
+    a flattened map rather than a global average, since where on the object a rounded end
+    lies is the cue. The last layer starts at zero, so an untrained network is the identity.
+    """
+
+    def __init__(self, hidden: int = 256):
+        super().__init__()
+        channels = [4, 32, 32, 64, 64, 128]
+        layers = []
+        for i in range(5):
+            layers += [nn.Conv2d(channels[i], channels[i + 1], 3, stride=1 if i == 0 else 2, padding=1),
+                       nn.GroupNorm(8, channels[i + 1]), nn.ReLU()]
+        self.features = nn.Sequential(*layers)
+        side = RELIEF_CROP_SIZE // 16
+        self.head = nn.Sequential(nn.Flatten(), nn.Linear(128 * side * side, hidden), nn.ReLU(), nn.Linear(hidden, 3))
+        nn.init.zeros_(self.head[-1].weight)
+        nn.init.zeros_(self.head[-1].bias)
+
+    def forward(self, crops: Tensor) -> Tensor:
+        return self.head(self.features(crops))
+
+
+def _mirrored(crops: Tensor, flip_x: bool, flip_y: bool) -> Tensor:
+    """The crops seen in a mirror: columns reversed negate ``n_x``, rows reversed ``n_y``."""
+    sign = torch.tensor([-1.0 if flip_x else 1.0, -1.0 if flip_y else 1.0, 1.0, 1.0], device=crops.device)
+    dims = [d for d, f in ((-1, flip_x), (-2, flip_y)) if f]
+    out = crops * sign[:, None, None]
+    return out.flip(dims) if dims else out
+
+
+def _network_transform(net: ReliefNet, crops: Tensor) -> ReliefTransform:
+    """The network's transform averaged over the four mirror images of ``crops``."""
+    outputs = []
+    for flip_x in (False, True):
+        for flip_y in (False, True):
+            raw = net(_mirrored(crops, flip_x, flip_y))
+            outputs.append(torch.stack([raw[:, 0], -raw[:, 1] if flip_x else raw[:, 1],
+                                        -raw[:, 2] if flip_y else raw[:, 2]], 1))
+    mean = torch.stack(outputs).mean(0)
+    return ReliefTransform(scale=mean[:, 0].exp(), tilt_x=mean[:, 1], tilt_y=mean[:, 2])
+
+
+def predict_relief(normals: Tensor, mask: Tensor, net: ReliefNet, passes: int = 2) -> ReliefTransform:
+    r"""The transform the prior expects to correct each orthographic normal field.
+
+    Each pass crops the field (:func:`crop_to_object`), reads the network on its four
+    mirror images, averages their transforms and applies the mean to the field; a second
+    pass reads the corrected field again (on the tuning side it took the error further,
+    docs/pipeline.md). The result is the composition of the passes.
+
+    Args:
+        normals: :math:`(B, 3, H, W)` or :math:`(3, H, W)` unit normals on the mask.
+        mask: :math:`(B, 1, H, W)` or :math:`(1, H, W)` bool or {0, 1}, none empty.
+        net: a :class:`ReliefNet` (:func:`load_relief_net`), used on its device in float32.
+        passes: how often to read and correct, an integer >= 1.
+
+    Returns:
+        :class:`ReliefTransform` of :math:`(B,)` tensors, float32 on ``normals``' device;
+        not differentiable.
+
+    Raises:
+        ValueError: wrong shapes or sizes, an empty mask, non-unit normals on the mask, bad ``passes``.
+    """
+    normals, _ = to_batch(normals, "normals", 3)
+    mask, _ = to_batch(mask, "mask", 1)
+    check_shape(normals, "normals", "B 3 H W")
+    check_same_size(normals, "normals", mask, "mask")
+    mask = check_mask(mask, allow_full=True)
+    if not is_integer(passes, 1):
+        raise ValueError(f"passes must be an integer >= 1, got {passes!r}")
+    normals = normals.detach().float()
+    check_unit_vectors(normals.permute(0, 2, 3, 1)[mask[:, 0]], "normals", " on the mask")
+    device = next(net.parameters()).device
+    batch = normals.shape[0]
+    total = ReliefTransform(*(torch.full((batch,), v, device=normals.device) for v in (1.0, 0.0, 0.0)))
+    current = normals * mask
+    was_training = net.training
+    net.eval()
+    try:
+        with torch.no_grad():
+            for _ in range(passes):
+                step = _network_transform(net, crop_to_object(current, mask).to(device))
+                step = ReliefTransform(*(x.to(normals.device) for x in (step.scale, step.tilt_x, step.tilt_y)))
+                current = apply_relief(current, mask, step)
+                total = compose_relief(total, step)
+    finally:
+        net.train(was_training)
+    return total
+
+
+class ReliefPrior(nn.Module):
+    """Module form of :func:`predict_relief` holding the network (the shipped one by default).
+
+    ``forward(normals, mask) -> ReliefTransform``.
+    """
+
+    def __init__(self, net: Optional[ReliefNet] = None, passes: int = 2):
+        super().__init__()
+        if not is_integer(passes, 1):
+            raise ValueError(f"passes must be an integer >= 1, got {passes!r}")
+        self.net = load_relief_net() if net is None else net
+        self.passes = passes
+
+    def forward(self, normals: Tensor, mask: Tensor) -> ReliefTransform:
+        return predict_relief(normals, mask, self.net, self.passes)
+
+
+RELIEF_PRIOR_FILE = "data/relief_prior.npz"
+
+
+def load_relief_net(path: Optional[str] = None, *, device: Optional[torch.device] = None) -> ReliefNet:
+    """The network whose weights ship with the package (or those saved at ``path`` by
+    ``tools/build_relief_prior.py``), in eval mode on ``device``."""
+    source = resources.files("sfs_torch").joinpath(RELIEF_PRIOR_FILE) if path is None else path
+    with (source.open("rb") if path is None else open(source, "rb")) as f:
+        with np.load(f, allow_pickle=False) as npz:
+            settings = json.loads(str(npz["settings"]))
+            state = {k: torch.from_numpy(npz[k].astype(np.float32)) for k in npz.files if k != "settings"}
+    net = ReliefNet(hidden=settings["hidden"])
+    net.load_state_dict(state)
+    return net.to(device).eval()
+
+
+def save_relief_net(net: ReliefNet, path: str, settings: dict) -> None:
+    """Write ``net``'s weights and the ``settings`` it was trained with (JSON) to an ``.npz``."""
+    state = {k: v.detach().cpu().numpy() for k, v in net.state_dict().items()}
+    hidden = net.head[1].out_features
+    np.savez_compressed(path, settings=np.array(json.dumps({**settings, "hidden": hidden})), **state)
+
+
+def relief_training_views(meshes: Sequence, views_per_shape: int, generator: torch.Generator, *,
+                          resolution: int = 128, scale: float = 0.9, min_pixels: int = 200,
+                          progress: Optional[Callable] = None) -> Tensor:
+    """Cropped true normal maps (:func:`crop_to_object`) of meshes in uniformly random views.
+
+    Args:
+        meshes: ``trimesh.Trimesh`` objects normalised to the unit sphere (``sfs_torch.shapes``).
+        views_per_shape: random views per mesh (:func:`sfs_torch.rendering.random_view_rotations`).
+        generator: the source of the views.
+        resolution, scale: of the orthographic render (:func:`sfs_torch.rendering.render_normals`).
+        min_pixels: views whose object covers fewer pixels are left out.
+        progress: optional wrapper of the mesh iterable (e.g. ``tqdm``).
+
+    Returns:
+        :math:`(N, 4, 64, 64)`.
+    """
+    from .rendering import random_view_rotations, render_normals
+
+    crops = []
+    for mesh in (progress(meshes) if progress else meshes):
+        for rotation in random_view_rotations(views_per_shape, generator):
+            view = render_normals(mesh, rotation, resolution, scale=scale)
+            if int(view.mask.sum()) >= min_pixels:
+                crops.append(crop_to_object(view.normals[None], view.mask[None])[0])
+    return torch.stack(crops)
+
+
+def _smooth_perturbation(normals: Tensor, amplitude: float, generator: torch.Generator) -> Tensor:
+    """Normals whose slopes carry a smooth random field (a bicubic 6x6 grid of Gaussians)."""
+    field = torch.randn(normals.shape[0], 2, 6, 6, generator=generator)
+    field = F.interpolate(field, size=normals.shape[-2:], mode="bicubic", align_corners=False) * amplitude
+    nz = normals[:, 2:].clamp_min(0.05)
+    return F.normalize(torch.cat([normals[:, :2] + field * nz, nz], 1), dim=1)
+
+
+def fit_relief_net(views: Tensor, *, epochs: int = 8, batch_size: int = 64, tilt_std: float = 0.3,
+                   log_scale_std: float = 0.2, perturbation: float = 0.15, learning_rate: float = 2e-3,
+                   hidden: int = 256, seed: int = 0, progress: Optional[Callable] = None) -> ReliefNet:
+    """Train a :class:`ReliefNet` on true cropped normal maps (:func:`relief_training_views`), on the CPU.
+
+    Each step draws a batch, mirrors it at random, perturbs its slopes smoothly
+    (``perturbation``: a wrong estimate is not a transform of the truth alone), applies a
+    random transform (tilts Gaussian of std ``tilt_std``, log scale of std
+    ``log_scale_std``) and minimises the mean angle between the network's correction of
+    that field and the true one. AdamW with a one-cycle learning rate peaking at
+    ``learning_rate``. Everything random comes from ``seed``.
+
+    Returns:
+        the trained network, in eval mode.
+    """
+    check_shape(views, "views", "N 4 64 64")
+    for name, value in (("epochs", epochs), ("batch_size", batch_size), ("hidden", hidden)):
+        if not is_integer(value, 1):
+            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    for name, value in (("tilt_std", tilt_std), ("log_scale_std", log_scale_std), ("perturbation", perturbation)):
+        if not is_number(value, 0):
+            raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    if len(views) < batch_size:
+        raise ValueError(f"views holds {len(views)} crops, fewer than one batch of {batch_size}")
+    generator = torch.Generator().manual_seed(seed)
+    torch_state = torch.random.get_rng_state()
+    torch.manual_seed(seed)  # the layers' initial weights
+    net = ReliefNet(hidden=hidden)
+    torch.random.set_rng_state(torch_state)
+    steps_per_epoch = len(views) // batch_size
+    optimiser = torch.optim.AdamW(net.parameters(), lr=learning_rate / 2, weight_decay=1e-4)
+    schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, learning_rate, total_steps=epochs * steps_per_epoch)
+    net.train()
+    for _ in (progress(range(epochs)) if progress else range(epochs)):
+        order = torch.randperm(len(views), generator=generator)
+        for step in range(steps_per_epoch):
+            batch = views[order[step * batch_size:(step + 1) * batch_size]]
+            flips = torch.rand(2, generator=generator) < 0.5
+            batch = _mirrored(batch, bool(flips[0]), bool(flips[1]))
+            truth, mask = batch[:, :3], batch[:, 3:]
+            n = len(batch)
+            scale = (torch.randn(n, generator=generator) * log_scale_std).exp()
+            tilt = torch.randn(2, n, generator=generator) * tilt_std
+            perturbed = _smooth_perturbation(truth, perturbation, generator) if perturbation > 0 else truth
+            wrong = bas_relief_normals(perturbed, scale, tilt[0], tilt[1]) * mask
+            raw = net(torch.cat([wrong, mask], 1))
+            corrected = bas_relief_normals(wrong, raw[:, 0].exp(), raw[:, 1], raw[:, 2])
+            angle = torch.acos((corrected * truth).sum(1).clamp(-1 + 1e-6, 1 - 1e-6))
+            loss = ((angle * mask[:, 0]).sum((1, 2)) / mask[:, 0].sum((1, 2)).clamp_min(1)).mean()
+            optimiser.zero_grad()
+            loss.backward()
+            optimiser.step()
+            schedule.step()
+    return net.eval()
