@@ -20,7 +20,10 @@ transform could remove, not that any cue can. The script also scores every depth
 ``lam = c * (s / 0.8) ** p`` for ``p`` in ``SLOPE_POWERS``, ``s`` the median slope of each
 image's normals (``sfs_torch.integrability.median_slope``) and ``c`` the factor with the
 lowest mean error over the images (how ``relief_slope_power`` was chosen; run it on the
-call without a relief scale, ``--call '{"relief_scale": 1.0, "relief_slope_power": 0}'``).
+call without a relief scale, ``--call '{"relief_scale": 1.0, "relief_slope_power": 0,
+"relief_prior_passes": 0}'``). On such a call it also scores the default's slope rule
+followed by 1, 2 or 3 passes of the learnt relief prior (``sfs_torch.relief_prior``; how
+``relief_prior_passes`` was chosen).
 With ``--hypotheses`` the tilts are also
 tried as hypotheses produced alike, with no ground truth: the default's normals tilted,
 the lighting refitted to them (``refit_lighting``) and the joint refinement run from them
@@ -37,7 +40,7 @@ That measures whether the lighting prior can tell the transform.
     python benchmarks/bas_relief.py --side test --shapes 6 --lights 5 --degradation all
     python benchmarks/bas_relief.py --shapes 7 --lights 3 --exposure 0.2 --lighting-prior 0.1 0.3 1 3
     python benchmarks/bas_relief.py --shapes 10 --lights 8 --exposure 0.2 --light-seed 1 \
-        --call '{"relief_scale": 1.0, "relief_slope_power": 0}'
+        --call '{"relief_scale": 1.0, "relief_slope_power": 0, "relief_prior_passes": 0}'
 """
 from __future__ import annotations
 
@@ -65,9 +68,10 @@ from sfs_torch.geometry_db import load_database  # noqa: E402
 from sfs_torch.integrability import bas_relief_normals, median_slope  # noqa: E402
 from sfs_torch.metrics import normal_metrics  # noqa: E402
 from sfs_torch.natural_lighting import lighting_prior_energy, load_lighting_prior  # noqa: E402
-from sfs_torch.pipeline import RELIEF_REFERENCE_SLOPE, resolve_config  # noqa: E402
+from sfs_torch.pipeline import RELIEF_REFERENCE_SLOPE, PipelineConfig, resolve_config  # noqa: E402
 from sfs_torch.reflectance_map import refit_lighting  # noqa: E402
 from sfs_torch.refine import photometric_residual, refine_shape_and_lighting  # noqa: E402
+from sfs_torch.relief_prior import apply_relief, load_relief_net, predict_relief  # noqa: E402
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
 
 from _results import write_results  # noqa: E402
@@ -79,6 +83,9 @@ TILTS = (-1.0, -0.6, -0.3, 0.0, 0.3, 0.6, 1.0)
 # depth scale c * (s / RELIEF_REFERENCE_SLOPE) ** p per image, s its normals' median slope
 SLOPE_POWERS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.25)
 SLOPE_FACTORS = tuple(round(0.9 + 0.02 * i, 2) for i in range(36))
+# the default's slope rule, then this many passes of the learnt relief prior
+DEFAULT = PipelineConfig()
+RELIEF_PRIOR_PASSES = (1, 2, 3)
 # which (scale, tilt_x, tilt_y) of the grid each oracle may choose
 FAMILIES = {"scale": lambda t: t[1] == t[2] == 0, "tilt": lambda t: t[0] == 1, "both": lambda t: True}
 
@@ -125,6 +132,7 @@ def main() -> None:
     database = load_database(cfg.database, progress=False)
     grid = list(itertools.product(SCALES, TILTS, TILTS))
     prior = load_lighting_prior() if args.lighting_prior is not None else None
+    relief_net = load_relief_net()
     rows = []
     for scene in synthetic_scenes(shapes, lightings, resolution=args.resolution,
                                   formation=DEGRADATIONS[args.degradation]):
@@ -142,6 +150,11 @@ def main() -> None:
         relative = row["slope"] / RELIEF_REFERENCE_SLOPE
         row["by_slope"] = {f"{p:g}": [error(bas_relief_normals(est.normals, c * relative**p)) for c in SLOPE_FACTORS]
                            for p in SLOPE_POWERS}
+        ruled = bas_relief_normals(est.normals, DEFAULT.relief_scale * relative**DEFAULT.relief_slope_power) * mask
+        row["rule"] = error(ruled)
+        for passes in RELIEF_PRIOR_PASSES:
+            learnt = predict_relief(ruled, mask, relief_net, passes)
+            row[f"prior_{passes}"] = error(apply_relief(ruled, mask, learnt))
         for name, member in FAMILIES.items():
             best = min((t for t in grid if member(t)), key=errors.get)
             row[name], row[f"{name}_transform"] = errors[best], best
@@ -176,14 +189,15 @@ def main() -> None:
         rows.append(row)
         print(line + f"  ({time.perf_counter() - start:.0f} s)", flush=True)
 
-    columns = ["prior", "default", "scale", "tilt", "both"]
+    columns = ["prior", "default", "scale", "tilt", "both", "rule"] + [f"prior_{p}" for p in RELIEF_PRIOR_PASSES]
     if args.hypotheses is not None:
         columns += ["by_loss", "by_photometric"]
     for w in args.lighting_prior or ():
         columns.append(f"by_prior_{w:g}")
     labels = {"prior": "silhouette prior", "default": "the default call", "scale": "oracle scale",
               "tilt": "oracle tilt", "both": "oracle scale and tilt", "by_loss": "tilt by refinement loss",
-              "by_photometric": "tilt by photometric residual"}
+              "by_photometric": "tilt by photometric residual", "rule": "the default's slope rule",
+              **{f"prior_{p}": f"rule + {p} relief-prior pass(es)" for p in RELIEF_PRIOR_PASSES}}
     labels.update({f"by_prior_{w:g}": f"by photometric + {w:g} x prior" for w in args.lighting_prior or ()})
     summary = {c: {"median": statistics.median(r[c] for r in rows), "mean": statistics.mean(r[c] for r in rows)}
                for c in columns}

@@ -50,7 +50,6 @@ from .integrability import (
     METHODS,
     IntegrabilityConfig,
     Integrator,
-    bas_relief_normals,
     check_integrability_config,
     median_slope,
 )
@@ -71,6 +70,7 @@ from .refine import (
     photometric_residual,
     refine_shape_and_lighting,
 )
+from .relief_prior import ReliefTransform, apply_relief, compose_relief, load_relief_net, predict_relief, relief_depth
 from .silhouette import SilhouetteConfig, check_silhouette_config, coarse_normals, silhouette_features
 from .texton import N_TEXTON_FILTERS, TextonConfig, _check_kernel_size, texton_features
 
@@ -195,6 +195,11 @@ class PipelineConfig:
             images the steep estimates came out the flattest, so they are deepened more and
             flat ones less; 0 scales every image alike (chosen on the tuning side,
             docs/pipeline.md).
+        relief_prior_passes: after ``relief_scale``, on the same images: how many passes
+            of the learnt prior on shapes in their poses (:mod:`sfs_torch.relief_prior`)
+            correct the surface by a bas-relief transform, scale and tilt, that it reads
+            off the normal field (the lighting refitted once to the result); 0 leaves it
+            off. Measured in docs/pipeline.md.
         normal_rotation: how normals predicted in an orthographic frame are turned into
             a perspective camera's frame: ``"centroid"``, the one rotation of the object's
             centroid (the frame its training lighting is expressed in), or ``"pixel"``, each
@@ -222,6 +227,7 @@ class PipelineConfig:
     final_round: bool = True
     relief_scale: float = 1.22
     relief_slope_power: float = 0.5
+    relief_prior_passes: int = 2
     normal_rotation: str = "centroid"
     conv_samples_per_tree: int = 1
 
@@ -369,6 +375,8 @@ def _check_config(cfg: PipelineConfig) -> None:
         raise ValueError(f"relief_scale must be a number > 0, got {cfg.relief_scale!r}")
     if not is_number(cfg.relief_slope_power):
         raise ValueError(f"relief_slope_power must be a number, got {cfg.relief_slope_power!r}")
+    if not is_integer(cfg.relief_prior_passes, 0):
+        raise ValueError(f"relief_prior_passes must be an integer >= 0, got {cfg.relief_prior_passes!r}")
     highlight = cfg.prior_check_highlight
     if highlight is not None and not is_number(highlight, 0, strict=True):
         raise ValueError(f"prior_check_highlight must be a number > 0 or null, got {highlight!r}")
@@ -669,8 +677,9 @@ def estimate(
                     last = _final_round(image_b[b : b + 1], mask_b[b : b + 1], normals[b : b + 1], rows, db, image_cfg,
                                         timer, centroid, focal, principal_point)
                     depth[b], normals[b], sh[b], confidence[b] = (x[0] for x in last)
-        if (cfg.relief_scale != 1 or cfg.relief_slope_power != 0) and not given and focal is None and depth is not None:
-            with timer("relief scale"):
+        relief = cfg.relief_scale != 1 or cfg.relief_slope_power != 0 or cfg.relief_prior_passes > 0
+        if relief and not given and focal is None and depth is not None:
+            with timer("relief scale and prior"):
                 depth, normals, sh = _scaled_relief(image_b, mask_b, depth, normals, sh, ~skip, cfg)
         if cfg.keep_prior and not given and depth is not None:
             with timer("prior check after refinement"):
@@ -741,16 +750,21 @@ def _final_round(image: Tensor, mask: Tensor, normals: Tensor, rows: Tensor, db:
 def _scaled_relief(image: Tensor, mask: Tensor, depth: Tensor, normals: Tensor, sh: Tensor, among: Tensor,
                    cfg: PipelineConfig) -> tuple:
     """``(depth, normals, lighting)`` with the orthographic surfaces of the images in
-    ``among`` (B,) bool deepened by their :func:`_relief_factor` and their lighting refitted."""
+    ``among`` (B,) bool deepened by their :func:`_relief_factor`, then corrected by
+    ``cfg.relief_prior_passes`` passes of the learnt relief prior, their lighting refitted."""
     items = among.nonzero()[:, 0]
     if len(items) == 0:
         return depth, normals, sh
     depth, normals, sh = depth.clone(), normals.clone(), sh.clone()
     m = mask[items]
-    for b in items.tolist():
-        scale = _relief_factor(normals[b], mask[b], cfg)
-        normals[b] = bas_relief_normals(normals[b], scale) * mask[b]
-        depth[b] = depth[b] * scale
+    scale = torch.tensor([_relief_factor(normals[b], mask[b], cfg) for b in items.tolist()], device=normals.device)
+    transform = ReliefTransform(scale, torch.zeros_like(scale), torch.zeros_like(scale))
+    if cfg.relief_prior_passes > 0:
+        learnt = predict_relief(apply_relief(normals[items], m, transform), m, load_relief_net(device=normals.device),
+                                cfg.relief_prior_passes)
+        transform = compose_relief(transform, learnt)
+    normals[items] = apply_relief(normals[items], m, transform).to(normals.dtype)
+    depth[items] = relief_depth(depth[items], m, transform).to(depth.dtype)
     sh[items] = refit_lighting(image[items], m, normals[items], valid=cfg.valid_refit).to(sh.dtype)
     return depth, normals, sh
 

@@ -14,6 +14,7 @@ from sfs_torch.integrability import depth_to_normals
 from sfs_torch.pipeline import PipelineConfig, resolve_config, training_set
 from sfs_torch.reflectance_map import refit_lighting
 from sfs_torch.refine import rim_pixels
+from sfs_torch.relief_prior import apply_relief, load_relief_net, predict_relief, relief_depth
 from sfs_torch.silhouette import coarse_normals
 
 # A small database and forest keep these end-to-end tests to seconds; the accuracy of
@@ -368,8 +369,8 @@ class TestKeepPrior:
         assert torch.equal(est.lighting, sh)
 
 
-NO_RELIEF = {"relief_scale": 1.0, "relief_slope_power": 0}  # the refined surface as it is
-DEEPER = {"relief_scale": 1.5, "relief_slope_power": 0}
+NO_RELIEF = {"relief_scale": 1.0, "relief_slope_power": 0, "relief_prior_passes": 0}  # the refined surface as it is
+DEEPER = {"relief_scale": 1.5, "relief_slope_power": 0, "relief_prior_passes": 0}
 
 
 class TestFinalRound:
@@ -421,14 +422,14 @@ class TestReliefScale:
         interior = (mask & ~rim_pixels(mask[None])[0])[None]
         from_depth = depth_to_normals(deep.depth[None], mask[None])
         assert float(normal_metrics(from_depth, deep.normals[None], interior).median[0]) < 1.0
-        assert "relief scale" in deep.timings and "relief scale" not in flat.timings
+        assert "relief scale and prior" in deep.timings and "relief scale and prior" not in flat.timings
 
     def test_the_scale_grows_with_the_surfaces_own_median_slope(self, scene):
         _, mask, _, image = scene
         config = dict(TINY, keep_prior=False)
         flat = sfs_torch.estimate(image, mask, config=dict(config, **NO_RELIEF), progress=False)
-        deep = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.2, relief_slope_power=0.5),
-                                  progress=False)
+        deep = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.2, relief_slope_power=0.5,
+                                                           relief_prior_passes=0), progress=False)
         n = flat.normals[:, mask[0]]
         slope = float((n[:2].norm(dim=0) / n[2]).median())
         assert 0.2 < slope < 2.0  # a rim pixel's n_z near 0 does not move the median
@@ -438,9 +439,22 @@ class TestReliefScale:
         expected = torch.nn.functional.normalize(torch.stack([factor * n[0], factor * n[1], n[2]]), dim=0) * mask
         torch.testing.assert_close(deep.normals, expected)
         # a steeper surface of the same image is deepened more: its own slope sets the factor
-        steep = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.2, relief_slope_power=1.0),
-                                   progress=False)
+        steep = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.2, relief_slope_power=1.0,
+                                                            relief_prior_passes=0), progress=False)
         assert (float(steep.depth.abs().max()) > float(deep.depth.abs().max())) == (slope > 0.8)
+
+    def test_the_learnt_prior_corrects_the_scaled_surface_by_its_transform(self, scene):
+        _, mask, _, image = scene
+        config = dict(TINY, keep_prior=False)
+        scaled = sfs_torch.estimate(image, mask, config=dict(config, **DEEPER), progress=False)
+        corrected = sfs_torch.estimate(image, mask, config=dict(config, **dict(DEEPER, relief_prior_passes=2)),
+                                       progress=False)
+        learnt = predict_relief(scaled.normals, mask, load_relief_net(), passes=2)
+        expected = apply_relief(scaled.normals[None], mask[None], learnt)
+        torch.testing.assert_close(corrected.normals, expected[0])
+        torch.testing.assert_close(corrected.depth, relief_depth(scaled.depth[None], mask[None], learnt)[0])
+        torch.testing.assert_close(corrected.lighting, refit_lighting(image[None], mask[None], expected)[0])
+        assert float(normal_metrics(corrected.normals[None], scaled.normals[None], mask[None]).median[0]) > 0.1
 
     @pytest.mark.parametrize("case", ["known lighting", "perspective", "kept prior"])
     def test_left_alone(self, scene, case):
@@ -546,6 +560,7 @@ BAD_CONFIGS = [
     ({"relief_scale": 0.0}, r"^relief_scale must be a number > 0, got 0.0"),
     ({"relief_scale": "deep"}, r"'deep' .*could not be converted to Float\s+full_key: relief_scale"),
     ({"relief_slope_power": float("inf")}, r"^relief_slope_power must be a number, got inf"),
+    ({"relief_prior_passes": -1}, r"^relief_prior_passes must be an integer >= 0, got -1"),
     ({"integrate": {"method": "l3"}}, r"^integrate.method must be one of .*got 'l3'"),
     ({"integrate": {"tol": 0.0}}, r"^integrate.tol must be > 0"),
     # the solver's options are checked with integrate.method="none" (the default) too
