@@ -774,8 +774,9 @@ def bas_relief_normals(normals: Tensor, scale: Union[float, Tensor], tilt_x: Uni
     Args:
         normals: :math:`(B, 3, H, W)` or :math:`(3, H, W)` camera-frame normals (0 where
             there is no surface).
-        scale, tilt_x, tilt_y: numbers, or :math:`(B,)` tensors for one transform per
-            image (differentiable).
+        scale: a number, or a :math:`(B,)` tensor for one transform per image (differentiable).
+        tilt_x: likewise.
+        tilt_y: likewise.
 
     Returns:
         unit normals of the same shape, 0 where ``normals`` is 0.

@@ -20,7 +20,9 @@
    refined jointly with an integrable surface (``refine.when``, default ``"always"``),
    then once more from an unjittered forest trained for the refined lighting
    (``final_round``), and an estimated orthographic surface deepened by a factor that
-   grows with its median slope (``relief_scale``, ``relief_slope_power``, not in the paper);
+   grows with its median slope (``relief_scale``, ``relief_slope_power``, not in the paper),
+   then corrected by the bas-relief transform a learnt prior on shapes in their poses
+   reads off it (:mod:`sfs_torch.relief_prior`, ``relief_prior_passes``, not in the paper);
 7. optional integrability refinement (:mod:`sfs_torch.integrability`).
 """
 from __future__ import annotations

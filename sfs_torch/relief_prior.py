@@ -261,7 +261,8 @@ def relief_training_views(meshes: Sequence, views_per_shape: int, generator: tor
         meshes: ``trimesh.Trimesh`` objects normalised to the unit sphere (``sfs_torch.shapes``).
         views_per_shape: random views per mesh (:func:`sfs_torch.rendering.random_view_rotations`).
         generator: the source of the views.
-        resolution, scale: of the orthographic render (:func:`sfs_torch.rendering.render_normals`).
+        resolution: of the orthographic render (:func:`sfs_torch.rendering.render_normals`).
+        scale: the unit sphere's radius in the render, as a fraction of half the resolution.
         min_pixels: views whose object covers fewer pixels are left out.
         progress: optional wrapper of the mesh iterable (e.g. ``tqdm``).
 
