@@ -268,6 +268,9 @@ def relief_training_views(meshes: Sequence, views_per_shape: int, generator: tor
 
     Returns:
         :math:`(N, 4, 64, 64)`.
+
+    Raises:
+        ValueError: no view has ``min_pixels`` object pixels.
     """
     from .rendering import random_view_rotations, render_normals
 
@@ -277,6 +280,9 @@ def relief_training_views(meshes: Sequence, views_per_shape: int, generator: tor
             view = render_normals(mesh, rotation, resolution, scale=scale)
             if int(view.mask.sum()) >= min_pixels:
                 crops.append(crop_to_object(view.normals[None], view.mask[None])[0])
+    if not crops:
+        raise ValueError(f"no view of the {len(meshes)} meshes covers min_pixels={min_pixels} pixels at "
+                         f"resolution {resolution}")
     return torch.stack(crops)
 
 

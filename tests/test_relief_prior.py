@@ -151,6 +151,11 @@ class TestTraining:
         loaded = load_relief_net(str(tmp_path / "prior.npz"))
         torch.testing.assert_close(loaded(views[:4]), net(views[:4]))
 
+    def test_refuses_views_too_small_to_keep(self):
+        with pytest.raises(ValueError, match="no view of the 1 meshes covers min_pixels=100000"):
+            relief_training_views([blobby_mesh(0)], 2, torch.Generator().manual_seed(0), resolution=64,
+                                  min_pixels=100000)
+
     def test_refuses_too_few_views(self):
         with pytest.raises(ValueError, match="fewer than one batch"):
             fit_relief_net(torch.zeros(3, 4, 64, 64), batch_size=4)
