@@ -68,7 +68,7 @@ from sfs_torch.geometry_db import load_database  # noqa: E402
 from sfs_torch.integrability import bas_relief_normals, median_slope  # noqa: E402
 from sfs_torch.metrics import normal_metrics  # noqa: E402
 from sfs_torch.natural_lighting import lighting_prior_energy, load_lighting_prior  # noqa: E402
-from sfs_torch.pipeline import RELIEF_REFERENCE_SLOPE, PipelineConfig, resolve_config  # noqa: E402
+from sfs_torch.pipeline import RELIEF_REFERENCE_SLOPE, PipelineConfig, _relief_factor, resolve_config  # noqa: E402
 from sfs_torch.reflectance_map import refit_lighting  # noqa: E402
 from sfs_torch.refine import photometric_residual, refine_shape_and_lighting  # noqa: E402
 from sfs_torch.relief_prior import apply_relief, load_relief_net, predict_relief  # noqa: E402
@@ -150,7 +150,7 @@ def main() -> None:
         relative = row["slope"] / RELIEF_REFERENCE_SLOPE
         row["by_slope"] = {f"{p:g}": [error(bas_relief_normals(est.normals, c * relative**p)) for c in SLOPE_FACTORS]
                            for p in SLOPE_POWERS}
-        ruled = bas_relief_normals(est.normals, DEFAULT.relief_scale * relative**DEFAULT.relief_slope_power) * mask
+        ruled = bas_relief_normals(est.normals, _relief_factor(est.normals[0], mask[0], DEFAULT)) * mask
         row["rule"] = error(ruled)
         for passes in RELIEF_PRIOR_PASSES:
             learnt = predict_relief(ruled, mask, relief_net, passes)

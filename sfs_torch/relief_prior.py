@@ -33,11 +33,13 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ._checks import check_mask, check_same_size, check_shape, check_unit_vectors, is_integer, is_number, to_batch
+from .camera import pixel_grid
 from .integrability import bas_relief_normals
 
 __all__ = [
     "ReliefTransform", "ReliefNet", "ReliefPrior", "crop_to_object", "predict_relief", "apply_relief",
-    "compose_relief", "relief_depth", "load_relief_net", "save_relief_net", "fit_relief_net", "relief_training_views", "RELIEF_CROP_SIZE",
+    "compose_relief", "relief_depth", "load_relief_net", "save_relief_net", "fit_relief_net",
+    "relief_training_views", "RELIEF_CROP_SIZE",
 ]
 
 RELIEF_CROP_SIZE = 64
@@ -78,9 +80,7 @@ def relief_depth(depth: Tensor, mask: Tensor, transform: ReliefTransform) -> Ten
     pixels from the object's centroid, so the object keeps its mean height), 0 off it; its
     normals are :func:`apply_relief`'s.
     """
-    height, width = depth.shape[-2:]
-    v, u = torch.meshgrid(-torch.arange(height, dtype=depth.dtype, device=depth.device),
-                          torch.arange(width, dtype=depth.dtype, device=depth.device), indexing="ij")
+    u, v = pixel_grid(*depth.shape[-2:], device=depth.device, dtype=depth.dtype)
     out = torch.zeros_like(depth)
     for b in range(depth.shape[0]):
         m = mask[b, 0].bool()
@@ -160,8 +160,12 @@ def _network_transform(net: ReliefNet, crops: Tensor) -> ReliefTransform:
             raw = net(_mirrored(crops, flip_x, flip_y))
             outputs.append(torch.stack([raw[:, 0], -raw[:, 1] if flip_x else raw[:, 1],
                                         -raw[:, 2] if flip_y else raw[:, 2]], 1))
-    mean = torch.stack(outputs).mean(0)
-    return ReliefTransform(scale=mean[:, 0].exp(), tilt_x=mean[:, 1], tilt_y=mean[:, 2])
+    return _as_transform(torch.stack(outputs).mean(0))
+
+
+def _as_transform(raw: Tensor) -> ReliefTransform:
+    """The network's output ``(B, 3)``, ``(log scale, tilt_x, tilt_y)``, as a transform."""
+    return ReliefTransform(scale=raw[:, 0].exp(), tilt_x=raw[:, 1], tilt_y=raw[:, 2])
 
 
 def predict_relief(normals: Tensor, mask: Tensor, net: ReliefNet, passes: int = 2) -> ReliefTransform:
@@ -339,8 +343,7 @@ def fit_relief_net(views: Tensor, *, epochs: int = 8, batch_size: int = 64, tilt
             tilt = torch.randn(2, n, generator=generator) * tilt_std
             perturbed = _smooth_perturbation(truth, perturbation, generator) if perturbation > 0 else truth
             wrong = bas_relief_normals(perturbed, scale, tilt[0], tilt[1]) * mask
-            raw = net(torch.cat([wrong, mask], 1))
-            corrected = bas_relief_normals(wrong, raw[:, 0].exp(), raw[:, 1], raw[:, 2])
+            corrected = apply_relief(wrong, mask, _as_transform(net(torch.cat([wrong, mask], 1))))
             angle = torch.acos((corrected * truth).sum(1).clamp(-1 + 1e-6, 1 - 1e-6))
             loss = ((angle * mask[:, 0]).sum((1, 2)) / mask[:, 0].sum((1, 2)).clamp_min(1)).mean()
             optimiser.zero_grad()
