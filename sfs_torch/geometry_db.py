@@ -32,7 +32,7 @@ from safetensors.torch import load_file, save_file
 from torch import Tensor
 from tqdm import tqdm
 
-from ._checks import is_integer
+from ._checks import is_integer, is_number
 from .rendering import random_view_rotations, render_normals
 from .shapes import (
     COLLECTIONS,
@@ -151,8 +151,9 @@ def _check_config(cfg: DatabaseConfig) -> None:
         raise ValueError(f"patch_size must be a positive odd integer, got {cfg.patch_size!r}")
     if not is_integer(cfg.resolution, 8):
         raise ValueError(f"resolution must be an integer >= 8, got {cfg.resolution!r}")
-    if not 0 < cfg.scale < 1:
-        raise ValueError(f"scale must lie in (0, 1) so that the silhouette stays inside the image, got {cfg.scale}")
+    if not (is_number(cfg.scale) and 0 < cfg.scale < 1):
+        raise ValueError(f"scale must be a number in (0, 1) so that the silhouette stays inside the image, "
+                         f"got {cfg.scale!r}")
 
 
 def _mesh_root(collection: str, progress: bool = False) -> Optional[Path]:
@@ -365,6 +366,11 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
                             default=getattr(defaults, f.name), help=f"(default: {getattr(defaults, f.name)})")
     parser.add_argument("--fetch-only", action="store_true", help="only download and extract the meshes")
     args = parser.parse_args(argv)
+    cfg = DatabaseConfig(**{f.name: getattr(args, f.name) for f in fields(DatabaseConfig)})
+    try:  # before the meshes are fetched
+        _check_config(cfg)
+    except ValueError as error:
+        parser.error(str(error))
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.collection != "blobby":
         start = time.perf_counter()
@@ -372,7 +378,6 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
         log.info("mesh sources ready in %s (%.1f s)", mesh_dir(), time.perf_counter() - start)
     if args.fetch_only:
         return
-    cfg = DatabaseConfig(**{f.name: getattr(args, f.name) for f in fields(DatabaseConfig)})
     db = load_database(cfg, progress=True)
     log.info("geometry database: %d samples from %d shapes in %s", db.normals.shape[0], len(db.shape_names),
              _cache_paths(cfg)[0])

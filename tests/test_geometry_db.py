@@ -209,6 +209,20 @@ class TestMeshSources:
         main(["--collection", "blobby", "--n-shapes", "1", "--n-views", "1", "--resolution", "32"])
         assert len(list((tmp_path / "geometry").glob("db-*.json"))) == 1
 
+    @pytest.mark.parametrize("argv, message", [
+        (["--n-shapes", "0"], "n_shapes must be a positive integer, got 0"),
+        (["--collection", "foo"], "collection must be one of ['blobby', 'default', 'organic'], got 'foo'"),
+    ])
+    def test_main_refuses_bad_options_before_fetching(self, argv, message, monkeypatch, capsys):
+        def fetch(*args, **kwargs):
+            raise AssertionError("fetched the meshes before checking the options")
+
+        monkeypatch.setattr(geometry_db, "fetch_sources", fetch)
+        with pytest.raises(SystemExit) as exit_info:
+            main(argv)
+        assert exit_info.value.code == 2
+        assert capsys.readouterr().err.strip().splitlines()[-1] == f"sfs-torch-data: error: {message}"
+
     @pytest.mark.slow
     def test_default_collection(self):
         cfg = DatabaseConfig(n_shapes=6, n_views=2)
