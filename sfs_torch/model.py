@@ -79,8 +79,18 @@ class ShapeFromShading(nn.Module):
         Loaded by :func:`~sfs_torch.geometry_db.load_database` on the first request (and
         after ``config.database`` changed), moved to each device once; later requests
         return the same tensors.
+
+        Raises:
+            ValueError: ``device`` is no device, or a CUDA device where torch sees none
+                (before anything is loaded).
         """
-        device = torch.device("cpu" if device is None else device)
+        try:
+            device = torch.device("cpu" if device is None else device)
+        except (RuntimeError, TypeError):
+            raise ValueError(f"device must be a torch.device or a name such as 'cpu' or 'cuda:0', "
+                             f"got {device!r}") from None
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise ValueError(f"device {str(device)!r}: torch {torch.__version__} sees no CUDA device here")
         if device.type == "cuda" and device.index is None:
             device = torch.device("cuda", torch.cuda.current_device())
         if self._database_config != self.config.database:

@@ -180,6 +180,21 @@ class TestDatabaseHeldOnce:
         assert model.database(device) is db and len(load_calls) == 1
         torch.testing.assert_close(db.normals.cpu(), model.database().normals, rtol=0, atol=0)
 
+    @pytest.mark.parametrize("bad, message", [
+        ("foo", r"^device must be a torch.device or a name such as 'cpu' or 'cuda:0', got 'foo'$"),
+        (3.5, r"^device must be a torch.device .*got 3.5$"),
+    ])
+    def test_a_bad_device_is_refused_before_loading(self, bad, message, load_calls):
+        with pytest.raises(ValueError, match=message):
+            ShapeFromShading(TINY, progress=False).database(bad)
+        assert load_calls == []
+
+    @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+    def test_cuda_without_cuda_is_refused_before_loading(self, load_calls):
+        with pytest.raises(ValueError, match=r"^device 'cuda': torch .* sees no CUDA device here$"):
+            ShapeFromShading(TINY, progress=False).database("cuda")
+        assert load_calls == []
+
     def test_estimate_checks_the_database(self, scene):
         _, mask, sh, image = scene
         db = geometry_db.load_database(DatabaseConfig(**TINY["database"]), progress=False)
