@@ -74,8 +74,9 @@ class FormationConfig:
                 raise ValueError(f"FormationConfig.{name} must be a finite non-negative number, got {value!r}")
         if not is_integer(self.directions, 1):
             raise ValueError(f"FormationConfig.directions must be a positive integer, got {self.directions!r}")
-        if self.bits is not None and not is_integer(self.bits, 1, 16):
-            raise ValueError(f"FormationConfig.bits must be None or an integer in [1, 16], got {self.bits!r}")
+        if self.bits is not None and not is_integer(self.bits, 1, formation_ops.MAX_BITS):
+            raise ValueError(f"FormationConfig.bits must be None or an integer in [1, {formation_ops.MAX_BITS}], "
+                             f"got {self.bits!r}")
 
 
 _EXACT = FormationConfig()

@@ -43,6 +43,7 @@ __all__ = [
     "expose",
     "poisson_gaussian_noise",
     "quantise_srgb",
+    "MAX_BITS",
     "estimate_noise_sigma",
 ]
 
@@ -260,14 +261,18 @@ def poisson_gaussian_noise(image: Tensor, gain: float, sigma: float, generator: 
     return image + noise.to(image.device) * (gain * image.clamp_min(0) + sigma ** 2).sqrt()
 
 
+MAX_BITS = 16  # the deepest common image files (16-bit PNG / TIFF)
+
+
 def quantise_srgb(image: Tensor, bits: int = 8) -> Tensor:
     """Store as a ``bits``-bit sRGB file and read it back: clip to [0, 1], encode, round, decode; any shape.
 
     Raises:
-        ValueError: ``bits`` is not an integer >= 1 (0 bits leave no level to round to).
+        ValueError: ``bits`` is not an integer in [1, MAX_BITS] (0 bits leave no level to
+            round to; image files stop at 16 bits, and past 127 the levels overflowed float32).
     """
-    if not is_integer(bits, 1):
-        raise ValueError(f"bits must be an integer >= 1, got {bits!r}")
+    if not is_integer(bits, 1, MAX_BITS):
+        raise ValueError(f"bits must be an integer in [1, {MAX_BITS}], got {bits!r}")
     levels = 2 ** bits - 1
     return srgb_to_linear(torch.round(linear_to_srgb(image.clamp(0, 1)) * levels) / levels)
 

@@ -203,10 +203,10 @@ class TestCameraEffects:
         assert torch.allclose(codes, codes.round(), atol=1e-6)
         assert (linear_to_srgb(q) - linear_to_srgb(x.clamp(0, 1))).abs().max() <= 0.5 / 255 + 1e-9
 
-    @pytest.mark.parametrize("bits", [0, -1, 8.0, True])
+    @pytest.mark.parametrize("bits", [0, -1, 8.0, True, 17, 200])
     def test_quantise_srgb_bits(self, bits):
-        # 0 bits made the image NaN
-        with pytest.raises(ValueError, match=rf"^bits must be an integer >= 1, got {bits!r}$"):
+        # 0 bits made the image NaN, 200 an OverflowError from inside torch
+        with pytest.raises(ValueError, match=rf"^bits must be an integer in \[1, 16\], got {bits!r}$"):
             quantise_srgb(torch.rand(10), bits)
 
 
