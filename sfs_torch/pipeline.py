@@ -28,6 +28,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import time
 import warnings
 from contextlib import contextmanager
@@ -202,6 +203,9 @@ class PipelineConfig:
             correct the surface by a bas-relief transform, scale and tilt, that it reads
             off the normal field (the lighting refitted once to the result); 0 leaves it
             off. Measured in docs/pipeline.md.
+        relief_prior_weights: the learnt prior's weights: ``None`` for those that ship
+            with the package, or the path of an ``.npz`` that
+            ``tools/build_relief_prior.py --out`` wrote (a prior trained otherwise).
         normal_rotation: how normals predicted in an orthographic frame are turned into
             a perspective camera's frame: ``"centroid"``, the one rotation of the object's
             centroid (the frame its training lighting is expressed in), or ``"pixel"``, each
@@ -230,6 +234,7 @@ class PipelineConfig:
     relief_scale: float = 1.22
     relief_slope_power: float = 0.5
     relief_prior_passes: int = 2
+    relief_prior_weights: Optional[str] = None
     normal_rotation: str = "centroid"
     conv_samples_per_tree: int = 1
 
@@ -379,6 +384,10 @@ def _check_config(cfg: PipelineConfig) -> None:
         raise ValueError(f"relief_slope_power must be a number, got {cfg.relief_slope_power!r}")
     if not is_integer(cfg.relief_prior_passes, 0):
         raise ValueError(f"relief_prior_passes must be an integer >= 0, got {cfg.relief_prior_passes!r}")
+    weights = cfg.relief_prior_weights
+    if weights is not None and not (isinstance(weights, (str, os.PathLike)) and os.path.isfile(weights)):
+        raise ValueError(f"relief_prior_weights must be null (the shipped prior) or the path of an .npz that "
+                         f"tools/build_relief_prior.py wrote, got {weights!r}: no such file")
     highlight = cfg.prior_check_highlight
     if highlight is not None and not is_number(highlight, 0, strict=True):
         raise ValueError(f"prior_check_highlight must be a number > 0 or null, got {highlight!r}")
@@ -762,8 +771,8 @@ def _scaled_relief(image: Tensor, mask: Tensor, depth: Tensor, normals: Tensor, 
     scale = torch.tensor([_relief_factor(normals[b], mask[b], cfg) for b in items.tolist()], device=normals.device)
     transform = ReliefTransform(scale, torch.zeros_like(scale), torch.zeros_like(scale))
     if cfg.relief_prior_passes > 0:
-        learnt = predict_relief(apply_relief(normals[items], m, transform), m, load_relief_net(device=normals.device),
-                                cfg.relief_prior_passes)
+        net = load_relief_net(cfg.relief_prior_weights, device=normals.device)
+        learnt = predict_relief(apply_relief(normals[items], m, transform), m, net, cfg.relief_prior_passes)
         transform = compose_relief(transform, learnt)
     normals[items] = apply_relief(normals[items], m, transform).to(normals.dtype)
     depth[items] = relief_depth(depth[items], m, transform).to(depth.dtype)

@@ -238,14 +238,22 @@ RELIEF_PRIOR_FILE = "data/relief_prior.npz"
 
 def load_relief_net(path: Optional[str] = None, *, device: Optional[torch.device] = None) -> ReliefNet:
     """The network whose weights ship with the package (or those saved at ``path`` by
-    ``tools/build_relief_prior.py``), in eval mode on ``device``."""
+    ``tools/build_relief_prior.py``), in eval mode on ``device``.
+
+    Raises:
+        ValueError: ``path`` cannot be read or holds no :func:`save_relief_net` weights.
+    """
     source = resources.files("sfs_torch").joinpath(RELIEF_PRIOR_FILE) if path is None else path
-    with (source.open("rb") if path is None else open(source, "rb")) as f:
-        with np.load(f, allow_pickle=False) as npz:
-            settings = json.loads(str(npz["settings"]))
-            state = {k: torch.from_numpy(npz[k].astype(np.float32)) for k in npz.files if k != "settings"}
-    net = ReliefNet(hidden=settings["hidden"])
-    net.load_state_dict(state)
+    try:
+        with (source.open("rb") if path is None else open(source, "rb")) as f:
+            with np.load(f, allow_pickle=False) as npz:
+                settings = json.loads(str(npz["settings"]))
+                state = {k: torch.from_numpy(npz[k].astype(np.float32)) for k in npz.files if k != "settings"}
+        net = ReliefNet(hidden=settings["hidden"])
+        net.load_state_dict(state)
+    except (OSError, ValueError, KeyError, RuntimeError) as error:
+        raise ValueError(f"{str(source)!r} holds no relief prior's weights (tools/build_relief_prior.py writes "
+                         f"them): {type(error).__name__}: {error}") from None
     return net.to(device).eval()
 
 

@@ -14,7 +14,8 @@ from sfs_torch.integrability import depth_to_normals
 from sfs_torch.pipeline import PipelineConfig, resolve_config, training_set
 from sfs_torch.reflectance_map import refit_lighting
 from sfs_torch.refine import rim_pixels
-from sfs_torch.relief_prior import apply_relief, load_relief_net, predict_relief, relief_depth
+from sfs_torch.relief_prior import (ReliefNet, apply_relief, load_relief_net, predict_relief, relief_depth,
+                                    save_relief_net)
 from sfs_torch.silhouette import coarse_normals
 
 # A small database and forest keep these end-to-end tests to seconds; the accuracy of
@@ -456,6 +457,17 @@ class TestReliefScale:
         torch.testing.assert_close(corrected.lighting, refit_lighting(image[None], mask[None], expected)[0])
         assert float(normal_metrics(corrected.normals[None], scaled.normals[None], mask[None]).median[0]) > 0.1
 
+    def test_other_weights_replace_the_shipped_prior(self, scene, tmp_path):
+        _, mask, _, image = scene
+        config = dict(TINY, keep_prior=False)
+        identity = tmp_path / "identity.npz"  # an untrained network returns the identity transform
+        save_relief_net(ReliefNet(), str(identity), {})
+        scaled = sfs_torch.estimate(image, mask, config=dict(config, **DEEPER), progress=False)
+        other = sfs_torch.estimate(image, mask, progress=False, config=dict(
+            config, **dict(DEEPER, relief_prior_passes=2, relief_prior_weights=str(identity))))
+        torch.testing.assert_close(other.normals, scaled.normals)
+        torch.testing.assert_close(other.depth, scaled.depth)
+
     @pytest.mark.parametrize("case", ["known lighting", "perspective", "kept prior"])
     def test_left_alone(self, scene, case):
         _, mask, sh, image = scene
@@ -562,6 +574,8 @@ BAD_CONFIGS = [
     ({"relief_scale": "deep"}, r"'deep' .*could not be converted to Float\s+full_key: relief_scale"),
     ({"relief_slope_power": float("inf")}, r"^relief_slope_power must be a number, got inf"),
     ({"relief_prior_passes": -1}, r"^relief_prior_passes must be an integer >= 0, got -1"),
+    ({"relief_prior_weights": "no/such/prior.npz"},
+     r"^relief_prior_weights must be null \(the shipped prior\) or the path .*got 'no/such/prior.npz': no such file"),
     ({"integrate": {"method": "l3"}}, r"^integrate.method must be one of .*got 'l3'"),
     ({"integrate": {"tol": 0.0}}, r"^integrate.tol must be > 0"),
     # the solver's options are checked with integrate.method="none" (the default) too

@@ -151,6 +151,16 @@ class TestTraining:
         loaded = load_relief_net(str(tmp_path / "prior.npz"))
         torch.testing.assert_close(loaded(views[:4]), net(views[:4]))
 
+    @pytest.mark.parametrize("content", [None, b"not an npz", "other arrays"])
+    def test_load_refuses_a_file_without_weights(self, tmp_path, content):
+        path = tmp_path / "prior.npz"
+        if content == "other arrays":
+            np.savez(path, x=np.zeros(3))
+        elif content is not None:
+            path.write_bytes(content)
+        with pytest.raises(ValueError, match=r"prior.npz' holds no relief prior's weights \(tools/build_relief_prior"):
+            load_relief_net(str(path))
+
     def test_refuses_views_too_small_to_keep(self):
         with pytest.raises(ValueError, match="no view of the 1 meshes covers min_pixels=100000"):
             relief_training_views([blobby_mesh(0)], 2, torch.Generator().manual_seed(0), resolution=64,
