@@ -306,8 +306,8 @@ def _smooth_perturbation(normals: Tensor, amplitude: float, generator: torch.Gen
     return F.normalize(torch.cat([normals[:, :2] + field * nz, nz], 1), dim=1)
 
 
-def fit_relief_net(views: Tensor, *, epochs: int = 8, batch_size: int = 64, tilt_std: float = 0.3,
-                   log_scale_std: float = 0.2, perturbation: float = 0.15, learning_rate: float = 2e-3,
+def fit_relief_net(views: Tensor, *, epochs: int = 8, batch_size: int = 64, tilt_std: float = 0.4,
+                   log_scale_std: float = 0.5, perturbation: float = 0.4, learning_rate: float = 2e-3,
                    hidden: int = 256, seed: int = 0, progress: Optional[Callable] = None) -> ReliefNet:
     """Train a :class:`ReliefNet` on true cropped normal maps (:func:`relief_training_views`), on the CPU.
 
@@ -316,7 +316,10 @@ def fit_relief_net(views: Tensor, *, epochs: int = 8, batch_size: int = 64, tilt
     random transform (tilts Gaussian of std ``tilt_std``, log scale of std
     ``log_scale_std``) and minimises the mean angle between the network's correction of
     that field and the true one. AdamW with a one-cycle learning rate peaking at
-    ``learning_rate``. Everything random comes from ``seed``.
+    ``learning_rate``. Everything random comes from ``seed``. The defaults match what the
+    pipeline's own estimates need: on cross-fitted estimates of the training shapes, the
+    best transform's log scale and tilts spread by about 0.5 and 0.4, and the slopes left
+    wrong after it by about 0.4 (docs/pipeline.md).
 
     Returns:
         the trained network, in eval mode.
