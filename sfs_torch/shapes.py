@@ -400,7 +400,7 @@ def load_shape(name: str, root: Optional[PathLike] = None) -> Shape:
     """Load and normalise one shape by name (see :func:`collection_names`)."""
     group, _, item = name.partition("/")
     if group == "blobby":
-        if not item.isdigit():
+        if not (item.isascii() and item.isdigit()):
             raise ValueError(f"unknown shape name {name!r}: a blobby shape is 'blobby/<seed>', the seed a "
                              f"non-negative integer")
         return Shape(name, blobby_mesh(int(item)))
