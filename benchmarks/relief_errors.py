@@ -44,6 +44,7 @@ from sfs_torch.relief_prior import (  # noqa: E402
     apply_relief,
     crop_to_object,
     fit_relief_net,
+    mean_angle,
 )
 from sfs_torch.shapes import load_shape  # noqa: E402
 
@@ -52,12 +53,6 @@ from _results import write_results  # noqa: E402
 # (exposure, image formation) of each round, cycled
 SETTINGS = [(0.2, "exact"), (0.3, "all"), (0.15, "exact"), (0.25, "all"), (0.2, "exact"), (0.3, "exact")]
 STEEP_NZ = 0.3  # pixels this steep or steeper are left out of the slope error
-
-
-def mean_angle(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Per crop: the mean angle (rad) between two ``(N, 3, 64, 64)`` fields on ``(N, 1, 64, 64)`` masks."""
-    angle = torch.acos((a * b).sum(1).clamp(-1 + 1e-6, 1 - 1e-6))
-    return (angle * mask[:, 0]).sum((1, 2)) / mask[:, 0].sum((1, 2)).clamp_min(1)
 
 
 def best_transform(estimate: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor, steps: int = 400) -> torch.Tensor:
@@ -122,10 +117,10 @@ def main() -> None:
     if args.folds < 2 or args.rounds < 1:
         parser.error("--folds must be >= 2 and --rounds >= 1")
     estimates = cross_fitted_estimates(args)
-    mask = torch.stack([e[3] for e in estimates])
-    crops = crop_to_object(torch.stack([e[2].float() for e in estimates]), mask)
+    masks = torch.stack([e[3] for e in estimates])
+    crops = crop_to_object(torch.stack([e[2].float() for e in estimates]), masks)
     mask, estimate = crops[:, 3:], crops[:, :3]
-    truth = crop_to_object(torch.stack([e[4].float() for e in estimates]), torch.stack([e[3] for e in estimates]))[:, :3]
+    truth = crop_to_object(torch.stack([e[4].float() for e in estimates]), masks)[:, :3]
     raw = best_transform(estimate, truth, mask)
     corrected = apply_relief(estimate, mask, _as_transform(raw))
     amplitude = inspect.signature(fit_relief_net).parameters["perturbation"].default

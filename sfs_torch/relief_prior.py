@@ -39,7 +39,7 @@ from .integrability import bas_relief_normals
 __all__ = [
     "ReliefTransform", "ReliefNet", "ReliefPrior", "crop_to_object", "predict_relief", "apply_relief",
     "compose_relief", "relief_depth", "load_relief_net", "save_relief_net", "fit_relief_net",
-    "relief_training_views", "RELIEF_CROP_SIZE",
+    "relief_training_views", "mean_angle", "RELIEF_CROP_SIZE",
 ]
 
 RELIEF_CROP_SIZE = 64
@@ -306,6 +306,13 @@ def _smooth_perturbation(normals: Tensor, amplitude: float, generator: torch.Gen
     return F.normalize(torch.cat([normals[:, :2] + field * nz, nz], 1), dim=1)
 
 
+def mean_angle(normals: Tensor, truth: Tensor, mask: Tensor) -> Tensor:
+    r"""Per image, the mean angle (radians) between two normal fields on the mask, differentiable:
+    :math:`(B, 3, H, W), (B, 3, H, W), (B, 1, H, W) -> (B,)`; :func:`fit_relief_net`'s loss."""
+    angle = torch.acos((normals * truth).sum(1).clamp(-1 + 1e-6, 1 - 1e-6))
+    return (angle * mask[:, 0]).sum((1, 2)) / mask[:, 0].sum((1, 2)).clamp_min(1)
+
+
 def fit_relief_net(views: Tensor, *, epochs: int = 8, batch_size: int = 64, tilt_std: float = 0.4,
                    log_scale_std: float = 0.5, perturbation: float = 0.4, learning_rate: float = 2e-3,
                    hidden: int = 256, seed: int = 0, progress: Optional[Callable] = None) -> ReliefNet:
@@ -356,8 +363,7 @@ def fit_relief_net(views: Tensor, *, epochs: int = 8, batch_size: int = 64, tilt
             perturbed = _smooth_perturbation(truth, perturbation, generator) if perturbation > 0 else truth
             wrong = bas_relief_normals(perturbed, scale, tilt[0], tilt[1]) * mask
             corrected = apply_relief(wrong, mask, _as_transform(net(torch.cat([wrong, mask], 1))))
-            angle = torch.acos((corrected * truth).sum(1).clamp(-1 + 1e-6, 1 - 1e-6))
-            loss = ((angle * mask[:, 0]).sum((1, 2)) / mask[:, 0].sum((1, 2)).clamp_min(1)).mean()
+            loss = mean_angle(corrected, truth, mask).mean()
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()

@@ -244,12 +244,12 @@ def test_an_integer_option_of_a_stage_refuses_bools_floats_and_strings(stage, fi
         check(replace(config_class(), **{field: bad}))
 
 
-
 @pytest.mark.parametrize("bad", ["0.5", True, None, 0, 1.0, float("nan")])
 def test_the_database_scale_is_a_number_inside_the_image(bad):
     _, check = _checks_of_stage_configs()["database"]
     with pytest.raises(ValueError, match=rf"^scale must be a number in \(0, 1\).*got {re.escape(repr(bad))}$"):
         check(replace(DatabaseConfig(), scale=bad))
+
 
 def test_integer_arguments_of_functions_refuse_bools():
     import torch

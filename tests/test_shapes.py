@@ -178,11 +178,11 @@ class TestCollections:
         assert list(names) == ["blobby"] and len(names["blobby"]) >= 1000
         assert load_shape(names["blobby"][3]).mesh.vertices.shape == blobby_mesh(3).vertices.shape
 
-
     @pytest.mark.parametrize("name", ["blobby/abc", "blobby/-1", "blobby/", "blobby/1.5", "blobby/\u00b2"])
     def test_a_blobby_name_needs_an_integer_seed(self, name):
         with pytest.raises(ValueError, match=rf"^unknown shape name '{re.escape(name)}': a blobby shape is"):
             load_shape(name)
+
     def test_exception(self, tmp_path):
         with pytest.raises(ValueError, match="collection must be one of"):
             collection_names("nope")
