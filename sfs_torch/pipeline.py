@@ -385,9 +385,14 @@ def _check_config(cfg: PipelineConfig) -> None:
     if not is_integer(cfg.relief_prior_passes, 0):
         raise ValueError(f"relief_prior_passes must be an integer >= 0, got {cfg.relief_prior_passes!r}")
     weights = cfg.relief_prior_weights
-    if weights is not None and not (isinstance(weights, (str, os.PathLike)) and os.path.isfile(weights)):
-        raise ValueError(f"relief_prior_weights must be null (the shipped prior) or the path of an .npz that "
-                         f"tools/build_relief_prior.py wrote, got {weights!r}: no such file")
+    if weights is not None:
+        if not (isinstance(weights, (str, os.PathLike)) and os.path.isfile(weights)):
+            raise ValueError(f"relief_prior_weights must be null (the shipped prior) or the path of an .npz that "
+                             f"tools/build_relief_prior.py wrote, got {weights!r}: no such file")
+        try:  # a file that is no network fails here, not after the forest (~20 ms)
+            load_relief_net(weights)
+        except ValueError as error:
+            raise ValueError(f"relief_prior_weights: {error}") from None
     highlight = cfg.prior_check_highlight
     if highlight is not None and not is_number(highlight, 0, strict=True):
         raise ValueError(f"prior_check_highlight must be a number > 0 or null, got {highlight!r}")

@@ -2,6 +2,7 @@ import hashlib
 import os
 import time
 
+import numpy as np
 import pytest
 import torch
 from scenes import sphere, with_highlight
@@ -620,6 +621,13 @@ class TestConfigCheckedAtEntry:
         _, mask, _, image = scene
         with pytest.raises(ValueError, match=match):
             sfs_torch.estimate(image, mask, config={**TINY, **config}, progress=False)
+
+    def test_relief_prior_weights_that_hold_no_network(self, scene, no_work, tmp_path):
+        _, mask, _, image = scene
+        junk = tmp_path / "junk.npz"
+        np.savez(junk, weights=np.zeros(3))
+        with pytest.raises(ValueError, match=r"^relief_prior_weights: '.*junk.npz' holds no relief prior's weights"):
+            sfs_torch.estimate(image, mask, config={**TINY, "relief_prior_weights": str(junk)}, progress=False)
 
     @pytest.mark.parametrize("integrate", ["l3", "None", ""])
     def test_estimate_integrate_argument(self, scene, no_work, integrate):
