@@ -21,9 +21,10 @@ transform could remove, not that any cue can. The script also scores every depth
 image's normals (``sfs_torch.integrability.median_slope``) and ``c`` the factor with the
 lowest mean error over the images (how ``relief_slope_power`` was chosen; run it on the
 call without a relief scale, ``--call '{"relief_scale": 1.0, "relief_slope_power": 0,
-"relief_prior_passes": 0}'``). On such a call it also scores the default's slope rule
-followed by 1, 2 or 3 passes of the learnt relief prior (``sfs_torch.relief_prior``; how
-``relief_prior_passes`` was chosen).
+"relief_prior_passes": 0}'``). On such a call it also scores the default's relief scale
+(none since the learnt prior made the slope rule redundant; the rule when it was the
+default) followed by 1, 2 or 3 passes of the learnt relief prior (``sfs_torch.relief_prior``;
+how ``relief_prior_passes`` was chosen).
 With ``--hypotheses`` the tilts are also
 tried as hypotheses produced alike, with no ground truth: the default's normals tilted,
 the lighting refitted to them (``refit_lighting``) and the joint refinement run from them
@@ -83,7 +84,7 @@ TILTS = (-1.0, -0.6, -0.3, 0.0, 0.3, 0.6, 1.0)
 # depth scale c * (s / RELIEF_REFERENCE_SLOPE) ** p per image, s its normals' median slope
 SLOPE_POWERS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.25)
 SLOPE_FACTORS = tuple(round(0.9 + 0.02 * i, 2) for i in range(36))
-# the default's slope rule, then this many passes of the learnt relief prior
+# the default's relief scale (1: none), then this many passes of the learnt relief prior
 DEFAULT = PipelineConfig()
 RELIEF_PRIOR_PASSES = (1, 2, 3)
 # which (scale, tilt_x, tilt_y) of the grid each oracle may choose
@@ -196,8 +197,8 @@ def main() -> None:
         columns.append(f"by_prior_{w:g}")
     labels = {"prior": "silhouette prior", "default": "the default call", "scale": "oracle scale",
               "tilt": "oracle tilt", "both": "oracle scale and tilt", "by_loss": "tilt by refinement loss",
-              "by_photometric": "tilt by photometric residual", "rule": "the default's slope rule",
-              **{f"prior_{p}": f"rule + {p} relief-prior pass(es)" for p in RELIEF_PRIOR_PASSES}}
+              "by_photometric": "tilt by photometric residual", "rule": "the default's relief scale",
+              **{f"prior_{p}": f"that + {p} relief-prior pass(es)" for p in RELIEF_PRIOR_PASSES}}
     labels.update({f"by_prior_{w:g}": f"by photometric + {w:g} x prior" for w in args.lighting_prior or ()})
     summary = {c: {"median": statistics.median(r[c] for r in rows), "mean": statistics.mean(r[c] for r in rows)}
                for c in columns}

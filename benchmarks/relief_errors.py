@@ -6,8 +6,9 @@ script measures how large both are in the pipeline's own estimates, without read
 validation or test shape: the database's training shapes fall into ``--folds`` folds
 (shape ``i`` into fold ``i % folds``), and each fold's images are estimated with the
 default database less every patch of that fold's shapes, so no forest has seen the
-shape it estimates. The call is the one the relief prior sees in the pipeline (no relief
-scale, no prior passes; the slope rule then applied). Each round gives every training
+shape it estimates. The call is the one the relief prior sees in the pipeline (no prior
+passes; the default's relief scale then applied: none since the slope rule was dropped,
+which docs/pipeline.md's figures, measured before, include). Each round gives every training
 shape one random view and one Poly Haven map (seed ``100 + round``), under the round's
 exposure and image formation (:data:`SETTINGS`, cycled).
 

@@ -13,7 +13,8 @@ reporting an ablation of choices already made, never for making one.
     python benchmarks/tune.py --side test --shapes 6 --lights 5 --no-sphere --ablation
 
 ``--ablation`` runs :data:`ABLATION`: the paper's method, then each addition on top of
-the one before, up to the default, and the default with the true lighting given.
+the one before, then the default (the learnt relief prior without the relief scale
+before it, which it made redundant), and the default with the true lighting given.
 """
 from __future__ import annotations
 
@@ -39,7 +40,8 @@ from sfs_torch.silhouette import coarse_normals  # noqa: E402
 
 from _results import write_results  # noqa: E402
 
-# (label, overrides): each row adds to the one above it; the last gives the true lighting
+# (label, overrides): each row adds to the one above it up to the learnt relief prior; then the default
+# (that prior without the relief scale) and the default given the true lighting
 ABLATION = [
     ("the paper's method", {"refine_rounds": 0, "keep_prior": False, "valid_refit": False,
                             "training": {"brightness_jitter": 0.0, "colour_jitter": 0.0, "noise_from_image": False},
@@ -48,14 +50,14 @@ ABLATION = [
                                            "refine": {"when": "never"}}),
     ("+ prior check, image-noise matching", {"refine": {"when": "never"}}),
     ("+ joint refinement of surface and lighting", {"refine": {"lighting_weight": 0.0}, "final_round": False,
-                                                    "relief_scale": 1.0, "relief_slope_power": 0.0,
                                                     "relief_prior_passes": 0}),
-    ("+ natural-lighting prior", {"final_round": False, "relief_scale": 1.0, "relief_slope_power": 0.0,
-                                  "relief_prior_passes": 0}),
-    ("+ final unjittered round", {"relief_scale": 1.0, "relief_slope_power": 0.0, "relief_prior_passes": 0}),
-    ("+ fixed relief scale", {"relief_scale": 1.1, "relief_slope_power": 0.0, "relief_prior_passes": 0}),
-    ("+ relief scale growing with the slope", {"relief_prior_passes": 0}),
-    ("+ learnt relief prior (the default)", {}),
+    ("+ natural-lighting prior", {"final_round": False, "relief_prior_passes": 0}),
+    ("+ final unjittered round", {"relief_prior_passes": 0}),
+    ("+ fixed relief scale", {"relief_scale": 1.1, "relief_prior_passes": 0}),
+    ("+ relief scale growing with the slope", {"relief_scale": 1.22, "relief_slope_power": 0.5,
+                                               "relief_prior_passes": 0}),
+    ("+ learnt relief prior", {"relief_scale": 1.22, "relief_slope_power": 0.5}),
+    ("the learnt relief prior alone, no relief scale (the default)", {}),
     ("the default, true lighting given", {"lighting": "known"}),
 ]
 

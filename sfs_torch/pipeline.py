@@ -19,10 +19,10 @@
    fitted to the image, per pixel under a given lighting, and an estimated lighting
    refined jointly with an integrable surface (``refine.when``, default ``"always"``),
    then once more from an unjittered forest trained for the refined lighting
-   (``final_round``), and an estimated orthographic surface deepened by a factor that
-   grows with its median slope (``relief_scale``, ``relief_slope_power``, not in the paper),
-   then corrected by the bas-relief transform a learnt prior on shapes in their poses
-   reads off it (:mod:`sfs_torch.relief_prior`, ``relief_prior_passes``, not in the paper);
+   (``final_round``), and an estimated orthographic surface corrected by the bas-relief
+   transform a learnt prior on shapes in their poses reads off it
+   (:mod:`sfs_torch.relief_prior`, ``relief_prior_passes``, not in the paper; optionally
+   first deepened by a factor, ``relief_scale``, ``relief_slope_power``);
 7. optional integrability refinement (:mod:`sfs_torch.integrability`).
 """
 from __future__ import annotations
@@ -188,16 +188,18 @@ class PipelineConfig:
             by a factor, ``relief_scale`` for a surface of median slope 0.8 (below), a
             bas-relief transform (its normals ``(s n_x, s n_y, n_z)`` normalised, the
             lighting refitted to them), which changes the image's shading only through an
-            albedo factor. It corrects the estimate's measured flattening, chosen on
-            the tuning side (docs/pipeline.md); 1 with ``relief_slope_power=0`` leaves the
-            surface as refined. Images the prior check returns to the silhouette prior
-            keep Eq. 10's normals.
+            albedo factor. 1 with ``relief_slope_power=0`` (the defaults) leaves the
+            surface as refined: the learnt prior (``relief_prior_passes``) sets the
+            transform alone, and on the tuning side the rule before it changed no image by
+            more than 1 deg (docs/pipeline.md). Without the prior, ``relief_scale=1.22``
+            and ``relief_slope_power=0.5`` correct the estimate's measured flattening (the
+            rule chosen on the tuning side). Images the prior check returns to the
+            silhouette prior keep Eq. 10's normals.
         relief_slope_power: makes the relief scale grow with the refined surface's own
             median slope ``s`` (of ``|(n_x, n_y)| / n_z`` over the object): each image is
             scaled by ``relief_scale * (s / 0.8) ** relief_slope_power``: on the tuning
             images the steep estimates came out the flattest, so they are deepened more and
-            flat ones less; 0 scales every image alike (chosen on the tuning side,
-            docs/pipeline.md).
+            flat ones less; 0 scales every image alike.
         relief_prior_passes: after ``relief_scale``, on the same images: how many passes
             of the learnt prior on shapes in their poses (:mod:`sfs_torch.relief_prior`)
             correct the surface by a bas-relief transform, scale and tilt, that it reads
@@ -231,8 +233,8 @@ class PipelineConfig:
     keep_prior: bool = True
     prior_check_highlight: Optional[float] = 0.1
     final_round: bool = True
-    relief_scale: float = 1.22
-    relief_slope_power: float = 0.5
+    relief_scale: float = 1.0
+    relief_slope_power: float = 0.0
     relief_prior_passes: int = 2
     relief_prior_weights: Optional[str] = None
     normal_rotation: str = "centroid"

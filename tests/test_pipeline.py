@@ -445,12 +445,14 @@ class TestReliefScale:
                                                             relief_prior_passes=0), progress=False)
         assert (float(steep.depth.abs().max()) > float(deep.depth.abs().max())) == (slope > 0.8)
 
-    def test_the_learnt_prior_corrects_the_scaled_surface_by_its_transform(self, scene):
+    # by default the prior alone corrects the surface as refined, with no scale before it
+    @pytest.mark.parametrize("start, overrides", [(DEEPER, dict(DEEPER, relief_prior_passes=2)), (NO_RELIEF, {})],
+                             ids=["after a scale", "the default"])
+    def test_the_learnt_prior_corrects_the_surface_by_its_transform(self, scene, start, overrides):
         _, mask, _, image = scene
         config = dict(TINY, keep_prior=False)
-        scaled = sfs_torch.estimate(image, mask, config=dict(config, **DEEPER), progress=False)
-        corrected = sfs_torch.estimate(image, mask, config=dict(config, **dict(DEEPER, relief_prior_passes=2)),
-                                       progress=False)
+        scaled = sfs_torch.estimate(image, mask, config=dict(config, **start), progress=False)
+        corrected = sfs_torch.estimate(image, mask, config=dict(config, **overrides), progress=False)
         learnt = predict_relief(scaled.normals, mask, load_relief_net(), passes=2)
         expected = apply_relief(scaled.normals[None], mask[None], learnt)
         torch.testing.assert_close(corrected.normals, expected[0])
