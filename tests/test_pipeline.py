@@ -483,6 +483,53 @@ class TestReliefScale:
         assert torch.equal(deep.normals, flat.normals) and torch.equal(deep.lighting, flat.lighting)
 
 
+class TestReliefRounds:
+    def test_each_round_starts_from_the_last_corrected_surface_and_the_surfaces_are_averaged(self, scene, monkeypatch):
+        _, mask, _, image = scene
+        config = dict(TINY, keep_prior=False)
+        one = sfs_torch.estimate(image, mask, config=config, progress=False)  # one round by default
+        corrected, starts = [], []
+        scaled_relief, final_round = pipeline._scaled_relief, pipeline._final_round
+
+        def recording_relief(*args):
+            corrected.append(scaled_relief(*args))
+            return corrected[-1]
+
+        def recording_final(image, mask, normals, *args):
+            starts.append(normals.clone())
+            return final_round(image, mask, normals, *args)
+
+        monkeypatch.setattr(pipeline, "_scaled_relief", recording_relief)
+        monkeypatch.setattr(pipeline, "_final_round", recording_final)
+        two = sfs_torch.estimate(image, mask, config=dict(config, relief_rounds=2), progress=False)
+        assert len(corrected) == 2 and len(starts) == 2
+        (first_depth, first, _), (second_depth, second, _) = corrected
+        torch.testing.assert_close(first[0], one.normals)  # the first round is the one-round estimate
+        torch.testing.assert_close(starts[1], first)  # the second starts from its corrected surface
+        assert float(normal_metrics(second, first, mask[None]).median[0]) > 0.1
+        torch.testing.assert_close(two.depth, (first_depth[0] + second_depth[0]) / 2)
+        slopes = (first[:, :2] / first[:, 2:] + second[:, :2] / second[:, 2:]) / 2
+        expected = torch.nn.functional.normalize(torch.cat([slopes, torch.ones_like(slopes[:, :1])], 1), dim=1)
+        expected = torch.where(mask, expected, 0.0)  # 0 / 0 off the object
+        torch.testing.assert_close(two.normals, expected[0])
+        torch.testing.assert_close(two.lighting, refit_lighting(image[None], mask[None], expected)[0])
+        torch.testing.assert_close(two.confidence, one.confidence)
+        # the mean of the slopes is the mean surface's: depth and normals stay one surface
+        interior = (mask & ~rim_pixels(mask[None])[0])[None]
+        from_depth = depth_to_normals(two.depth[None], mask[None])
+        assert float(normal_metrics(from_depth, two.normals[None], interior).median[0]) < 1.0
+        assert "relief rounds" in two.timings and "relief rounds" not in one.timings
+
+    @pytest.mark.parametrize("case", ["known lighting", "perspective"])
+    def test_left_alone_where_the_relief_stage_does_not_run(self, scene, case):
+        _, mask, sh, image = scene
+        kwargs = {"known lighting": {"lighting": sh}, "perspective": {"focal": 300.0}}[case]
+        config = dict(TINY, keep_prior=False)
+        one = sfs_torch.estimate(image, mask, config=config, progress=False, **kwargs)
+        two = sfs_torch.estimate(image, mask, config=dict(config, relief_rounds=2), progress=False, **kwargs)
+        assert torch.equal(two.normals, one.normals) and "relief rounds" not in two.timings
+
+
 class TestForestCache:
     def test_keeps_the_most_recently_used(self, scene, tmp_path, monkeypatch):
         monkeypatch.setenv("SFS_TORCH_CACHE", str(tmp_path))
@@ -577,6 +624,7 @@ BAD_CONFIGS = [
     ({"relief_scale": "deep"}, r"'deep' .*could not be converted to Float\s+full_key: relief_scale"),
     ({"relief_slope_power": float("inf")}, r"^relief_slope_power must be a number, got inf"),
     ({"relief_prior_passes": -1}, r"^relief_prior_passes must be an integer >= 0, got -1"),
+    ({"relief_rounds": 0}, r"^relief_rounds must be an integer >= 1, got 0"),
     ({"relief_prior_weights": "no/such/prior.npz"},
      r"^relief_prior_weights must be null \(the shipped prior\) or the path .*got 'no/such/prior.npz': no such file"),
     ({"integrate": {"method": "l3"}}, r"^integrate.method must be one of .*got 'l3'"),
