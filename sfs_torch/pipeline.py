@@ -38,7 +38,6 @@ from typing import Any, Dict, Iterator, Optional, Sequence, Union
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 from torch import Tensor
@@ -55,6 +54,8 @@ from .integrability import (
     METHODS,
     IntegrabilityConfig,
     Integrator,
+    _gradients,
+    _unit,
     check_integrability_config,
     median_slope,
 )
@@ -705,19 +706,16 @@ def estimate(
                                          principal_point)
         if cfg.final_round and not given and depth is not None:
             with timer("final round"):
-                for b in (~skip).nonzero()[:, 0].tolist():
-                    rows, centroid, image_cfg = per_image[b]
-                    last = _final_round(image_b[b : b + 1], mask_b[b : b + 1], normals[b : b + 1], rows, db, image_cfg,
-                                        timer, centroid, focal, principal_point)
-                    depth[b], normals[b], sh[b], confidence[b] = (x[0] for x in last)
+                depth, normals, sh, confidence = _final_rounds(image_b, mask_b, (depth, normals, sh, confidence), ~skip,
+                                                               per_image, db, timer, focal, principal_point)
         relief = cfg.relief_scale != 1 or cfg.relief_slope_power != 0 or cfg.relief_prior_passes > 0
         if relief and not given and focal is None and depth is not None:
             with timer("relief scale and prior"):
                 depth, normals, sh = _scaled_relief(image_b, mask_b, depth, normals, sh, ~skip, cfg)
             if cfg.relief_rounds > 1:
                 with timer("relief rounds"):
-                    depth, normals, sh = _relief_rounds(image_b, mask_b, depth, normals, sh, ~skip, per_image, db,
-                                                        cfg, timer)
+                    depth, normals, sh = _relief_rounds(image_b, mask_b, (depth, normals, sh, confidence), ~skip,
+                                                        per_image, db, cfg, timer)
         if cfg.keep_prior and not given and depth is not None:
             with timer("prior check after refinement"):
                 back = _prior_explains_better(image_b, mask_b, normals, ~skip, focal, principal_point, cfg.silhouette,
@@ -784,6 +782,20 @@ def _final_round(image: Tensor, mask: Tensor, normals: Tensor, rows: Tensor, db:
     return depth, normals, sh, found.confidence
 
 
+def _final_rounds(image: Tensor, mask: Tensor, surface: tuple, among: Tensor, per_image: list, db: GeometryDatabase,
+                  timer: _Timer, focal: Optional[float], principal_point: Optional[tuple]) -> tuple:
+    """``surface``, ``(depth, normals, lighting, confidence)`` of the batch, with each image in
+    ``among`` (B,) bool replaced by its :func:`_final_round` from its normals; the others keep theirs."""
+    out = tuple(x.clone() for x in surface)
+    for b in among.nonzero()[:, 0].tolist():
+        rows, centroid, image_cfg = per_image[b]
+        last = _final_round(image[b : b + 1], mask[b : b + 1], out[1][b : b + 1], rows, db, image_cfg, timer, centroid,
+                            focal, principal_point)
+        for x, y in zip(out, last):
+            x[b] = y[0]
+    return out
+
+
 def _scaled_relief(image: Tensor, mask: Tensor, depth: Tensor, normals: Tensor, sh: Tensor, among: Tensor,
                    cfg: PipelineConfig) -> tuple:
     """``(depth, normals, lighting)`` with the orthographic surfaces of the images in
@@ -806,40 +818,33 @@ def _scaled_relief(image: Tensor, mask: Tensor, depth: Tensor, normals: Tensor, 
     return depth, normals, sh
 
 
-def _relief_rounds(image: Tensor, mask: Tensor, depth: Tensor, normals: Tensor, sh: Tensor, among: Tensor,
-                   per_image: list, db: GeometryDatabase, cfg: PipelineConfig, timer: _Timer) -> tuple:
-    """``(depth, normals, lighting)`` of the orthographic images in ``among`` (B,) bool: the
-    mean of ``cfg.relief_rounds`` surfaces, the first the relief stage's ``depth`` and
-    ``normals``, each later one a final round and the relief stage from the one before."""
+def _relief_rounds(image: Tensor, mask: Tensor, surface: tuple, among: Tensor, per_image: list,
+                   db: GeometryDatabase, cfg: PipelineConfig, timer: _Timer) -> tuple:
+    """``(depth, normals, lighting)`` of the batch whose ``surface`` is the relief stage's
+    ``(depth, normals, lighting, confidence)``, its orthographic images in ``among`` (B,) bool
+    the mean of ``cfg.relief_rounds`` surfaces: the first the stage's, each later one a final
+    round and the relief stage from the one before."""
+    depth, normals, sh, _ = surface
     items = among.nonzero()[:, 0]
     if len(items) == 0:
         return depth, normals, sh
     m = mask[items]
     later = replace(cfg, relief_scale=1.0, relief_slope_power=0.0)  # the first round's surface alone is deepened
-    current_depth, current_normals, current_sh = depth.clone(), normals.clone(), sh.clone()
-    depths, slopes = [depth[items]], [_slopes(normals[items])]
+    depths, fields = [depth[items]], [normals[items]]
     for _ in range(cfg.relief_rounds - 1):
-        for b in items.tolist():
-            rows, centroid, image_cfg = per_image[b]
-            last = _final_round(image[b : b + 1], mask[b : b + 1], current_normals[b : b + 1], rows, db, image_cfg,
-                                timer, centroid, None, None)
-            current_depth[b], current_normals[b], current_sh[b] = (x[0] for x in last[:3])
-        current_depth, current_normals, current_sh = _scaled_relief(image, mask, current_depth, current_normals,
-                                                                    current_sh, among, later)
-        depths.append(current_depth[items])
-        slopes.append(_slopes(current_normals[items]))
+        surface = _final_rounds(image, mask, surface, among, per_image, db, timer, None, None)
+        corrected = _scaled_relief(image, mask, *surface[:3], among, later)
+        surface = (*corrected, surface[3])
+        depths.append(corrected[0][items])
+        fields.append(corrected[1][items])
     depth, normals, sh = depth.clone(), normals.clone(), sh.clone()
     depth[items] = torch.stack(depths).mean(0)
-    mean_slopes = torch.stack(slopes).mean(0)
-    normals[items] = F.normalize(torch.cat([mean_slopes, torch.ones_like(mean_slopes[:, :1])], 1), dim=1) * m
+    # the mean of the rounds' gradients is the mean surface's: its normals are the mean depth's
+    gu, gv, _ = _gradients(torch.stack(fields), None, None, 1e-6)
+    gu, gv = gu.mean(0), gv.mean(0)
+    normals[items] = _unit(torch.stack([-gu, -gv, torch.ones_like(gu)], 1)) * m
     sh[items] = refit_lighting(image[items], m, normals[items], valid=cfg.valid_refit).to(sh.dtype)
     return depth, normals, sh
-
-
-def _slopes(normals: Tensor) -> Tensor:
-    """``(n_x / n_z, n_y / n_z)`` of orthographic surface normals: :math:`(B, 3, H, W) -> (B, 2, H, W)`,
-    linear in the surface's gradient, so the mean of surfaces' slopes is their mean surface's."""
-    return normals[:, :2] / normals[:, 2:].clamp_min(1e-6)
 
 
 RELIEF_REFERENCE_SLOPE = 0.8  # about the median slope of the tuning images' refined surfaces
