@@ -208,6 +208,15 @@ class PipelineConfig:
             correct the surface by a bas-relief transform, scale and tilt, that it reads
             off the normal field (the lighting refitted once to the result); 0 leaves it
             off. Measured in docs/pipeline.md.
+        relief_refinements: after the learnt prior and the prior check after it, on the
+            images the relief stage corrected and the check did not return to the prior:
+            how many times the joint refinement runs again from the corrected surface
+            (pulled towards its normals by the final round's confidence, its lighting
+            fitted with it) and the prior corrects the result again. The prior fixes the
+            bas-relief transform the refinement cannot see; from the corrected surface the
+            refinement can fix some of what is left. 0 (the default) keeps the prior's
+            surface; each costs one refinement. Once helped every tuning-side set and was
+            about even on the test side (docs/pipeline.md).
         relief_rounds: how many surfaces the relief stage (``relief_scale`` and
             ``relief_prior_passes``) averages. Each round after the first starts from the
             previous round's corrected surface: the lighting refitted to it, the final
@@ -250,6 +259,7 @@ class PipelineConfig:
     relief_slope_power: float = 0.0
     relief_prior_passes: int = 2
     relief_prior_weights: Optional[str] = None
+    relief_refinements: int = 0
     relief_rounds: int = 1
     normal_rotation: str = "centroid"
     conv_samples_per_tree: int = 1
@@ -400,6 +410,8 @@ def _check_config(cfg: PipelineConfig) -> None:
         raise ValueError(f"relief_slope_power must be a number, got {cfg.relief_slope_power!r}")
     if not is_integer(cfg.relief_prior_passes, 0):
         raise ValueError(f"relief_prior_passes must be an integer >= 0, got {cfg.relief_prior_passes!r}")
+    if not is_integer(cfg.relief_refinements, 0):
+        raise ValueError(f"relief_refinements must be an integer >= 0, got {cfg.relief_refinements!r}")
     if not is_integer(cfg.relief_rounds, 1):
         raise ValueError(f"relief_rounds must be an integer >= 1, got {cfg.relief_rounds!r}")
     weights = cfg.relief_prior_weights
@@ -709,22 +721,30 @@ def estimate(
                 depth, normals, sh, confidence = _final_rounds(image_b, mask_b, (depth, normals, sh, confidence), ~skip,
                                                                per_image, db, timer, focal, principal_point)
         relief = cfg.relief_scale != 1 or cfg.relief_slope_power != 0 or cfg.relief_prior_passes > 0
+        corrected = torch.zeros_like(skip)  # the images the relief stage corrects
         if relief and not given and focal is None and depth is not None:
+            corrected = ~skip
             with timer("relief scale and prior"):
-                depth, normals, sh = _scaled_relief(image_b, mask_b, depth, normals, sh, ~skip, cfg)
+                depth, normals, sh = _scaled_relief(image_b, mask_b, depth, normals, sh, corrected, cfg)
             if cfg.relief_rounds > 1:
                 with timer("relief rounds"):
-                    depth, normals, sh = _relief_rounds(image_b, mask_b, (depth, normals, sh, confidence), ~skip,
+                    depth, normals, sh = _relief_rounds(image_b, mask_b, (depth, normals, sh, confidence), corrected,
                                                         per_image, db, cfg, timer)
         if cfg.keep_prior and not given and depth is not None:
             with timer("prior check after refinement"):
                 back = _prior_explains_better(image_b, mask_b, normals, ~skip, focal, principal_point, cfg.silhouette,
                                               cfg.prior_check_highlight)
+                corrected &= ~back
                 if bool(back.any()):
                     depth, normals, sh = _back_to_prior(image_b, mask_b, depth, normals, sh, confidence, back, cfg,
                                                         focal, principal_point)
                     if integrate == "conv":
                         candidates = [normals[b : b + 1].clone() if back[b] else c for b, c in enumerate(candidates)]
+        # after the check, which weighs the prior against the surface as the prior corrected it: refined
+        # again, a wrong surface fits the image better, and before the check it beat spheres' exact prior
+        if cfg.relief_refinements > 0 and bool(corrected.any()):
+            with timer("refinement after the relief prior"):
+                depth, normals, sh = _refined_relief(image_b, mask_b, (depth, normals, sh, confidence), corrected, cfg)
     if integrate != "none":
         with timer(f"integrate ({integrate})"):
             integrator = _integrator(cfg.integrate, integrate, focal, principal_point)
@@ -815,6 +835,26 @@ def _scaled_relief(image: Tensor, mask: Tensor, depth: Tensor, normals: Tensor, 
     normals[items] = apply_relief(normals[items], m, transform).to(normals.dtype)
     depth[items] = relief_depth(depth[items], m, transform).to(depth.dtype)
     sh[items] = refit_lighting(image[items], m, normals[items], valid=cfg.valid_refit).to(sh.dtype)
+    return depth, normals, sh
+
+
+def _refined_relief(image: Tensor, mask: Tensor, surface: tuple, among: Tensor, cfg: PipelineConfig) -> tuple:
+    """``(depth, normals, lighting)`` of the batch whose ``surface`` is the relief stage's
+    ``(depth, normals, lighting, confidence)``, its images in ``among`` (B,) bool put
+    ``cfg.relief_refinements`` times through the joint refinement from their corrected
+    surface and the learnt prior (no relief scale) after it."""
+    depth, normals, sh, confidence = surface
+    items = among.nonzero()[:, 0]
+    if len(items) == 0:
+        return depth, normals, sh
+    depth, normals, sh = depth.clone(), normals.clone(), sh.clone()
+    m = mask[items]
+    later = replace(cfg, relief_scale=1.0, relief_slope_power=0.0)
+    skipped = torch.zeros_like(items, dtype=torch.bool)  # none of them: each is refined and corrected
+    for _ in range(cfg.relief_refinements):
+        refined = _refine(image[items], m, normals[items], sh[items], confidence[items], skipped, cfg, False, None,
+                          None)
+        depth[items], normals[items], sh[items] = _scaled_relief(image[items], m, *refined, ~skipped, later)
     return depth, normals, sh
 
 

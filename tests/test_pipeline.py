@@ -530,6 +530,68 @@ class TestReliefRounds:
         assert torch.equal(two.normals, one.normals) and "relief rounds" not in two.timings
 
 
+class TestReliefRefinements:
+    def test_the_refinement_starts_from_the_corrected_surface_and_the_prior_corrects_its_result(self, scene,
+                                                                                             monkeypatch):
+        _, mask, _, image = scene
+        config = dict(TINY, keep_prior=False)
+        without = sfs_torch.estimate(image, mask, config=config, progress=False)  # none by default
+        corrected, refinements = [], []
+        scaled_relief, refine = pipeline._scaled_relief, pipeline._refine
+
+        def recording_relief(*args):
+            corrected.append(scaled_relief(*args))
+            return corrected[-1]
+
+        def recording_refine(image, mask, normals, sh, confidence, *args):
+            refinements.append((normals.clone(), sh.clone(), confidence.clone()))
+            return refine(image, mask, normals, sh, confidence, *args)
+
+        monkeypatch.setattr(pipeline, "_scaled_relief", recording_relief)
+        monkeypatch.setattr(pipeline, "_refine", recording_refine)
+        once = sfs_torch.estimate(image, mask, config=dict(config, relief_refinements=1), progress=False)
+        # the joint refinement, the final round's, the one after the prior
+        assert len(corrected) == 2 and len(refinements) == 3
+        (_, first, first_sh), last = corrected
+        torch.testing.assert_close(first[0], without.normals)  # the prior's surface of relief_refinements=0
+        start, start_sh, confidence = refinements[2]
+        torch.testing.assert_close(start, first)  # refined from it, pulled towards it
+        torch.testing.assert_close(start_sh, first_sh)
+        torch.testing.assert_close(confidence[0], once.confidence)
+        for returned, expected in zip((once.depth, once.normals, once.lighting), last):
+            torch.testing.assert_close(returned, expected[0])  # the prior corrects the refined surface
+        assert float(normal_metrics(once.normals[None], without.normals[None], mask[None]).median[0]) > 0.1
+        assert "refinement after the relief prior" in once.timings
+        assert "refinement after the relief prior" not in without.timings
+
+    def test_not_run_on_images_the_prior_check_returns_to_the_prior(self, scene, monkeypatch):
+        _, mask, _, image = scene
+        checked = []
+
+        def prior_always_better(image, mask, normals, among, *args):
+            checked.append(normals.clone())
+            return among.clone()
+
+        monkeypatch.setattr(pipeline, "_better_prior", lambda *args, **kwargs: None)  # the first check keeps none
+        monkeypatch.setattr(pipeline, "_prior_explains_better", prior_always_better)
+        est = sfs_torch.estimate(image, mask, config=dict(TINY, relief_refinements=1), progress=False)
+        without = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False), progress=False)
+        # the check weighed the prior against the surface as the prior corrected it, and kept the prior
+        torch.testing.assert_close(checked[0][0], without.normals)
+        torch.testing.assert_close(est.normals, coarse_normals(mask[None])[0] * mask)
+        assert "relief scale and prior" in est.timings and "refinement after the relief prior" not in est.timings
+
+    @pytest.mark.parametrize("case", ["known lighting", "perspective"])
+    def test_left_alone_where_the_relief_stage_does_not_run(self, scene, case):
+        _, mask, sh, image = scene
+        kwargs = {"known lighting": {"lighting": sh}, "perspective": {"focal": 300.0}}[case]
+        config = dict(TINY, keep_prior=False)
+        once = sfs_torch.estimate(image, mask, config=dict(config, relief_refinements=1), progress=False, **kwargs)
+        without = sfs_torch.estimate(image, mask, config=config, progress=False, **kwargs)
+        assert torch.equal(once.normals, without.normals)
+        assert "refinement after the relief prior" not in once.timings
+
+
 class TestForestCache:
     def test_keeps_the_most_recently_used(self, scene, tmp_path, monkeypatch):
         monkeypatch.setenv("SFS_TORCH_CACHE", str(tmp_path))
@@ -624,6 +686,7 @@ BAD_CONFIGS = [
     ({"relief_scale": "deep"}, r"'deep' .*could not be converted to Float\s+full_key: relief_scale"),
     ({"relief_slope_power": float("inf")}, r"^relief_slope_power must be a number, got inf"),
     ({"relief_prior_passes": -1}, r"^relief_prior_passes must be an integer >= 0, got -1"),
+    ({"relief_refinements": -1}, r"^relief_refinements must be an integer >= 0, got -1"),
     ({"relief_rounds": 0}, r"^relief_rounds must be an integer >= 1, got 0"),
     ({"relief_prior_weights": "no/such/prior.npz"},
      r"^relief_prior_weights must be null \(the shipped prior\) or the path .*got 'no/such/prior.npz': no such file"),
