@@ -1,8 +1,12 @@
-"""What the accuracy benchmarks write: their arguments and results, as one JSON file."""
+"""What the accuracy benchmarks write: their arguments and results, as one JSON file; and
+how sure a change between two variants on the same images is."""
 from __future__ import annotations
 
 import argparse
 import json
+from typing import Sequence
+
+import numpy as np
 
 
 def write_results(args: argparse.Namespace, **results) -> None:
@@ -11,3 +15,24 @@ def write_results(args: argparse.Namespace, **results) -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, **results}, indent=2))
     print(f"wrote {args.out}")
+
+
+def paired_bootstrap(first: Sequence[float], second: Sequence[float], *, draws: int = 5000, level: float = 0.9,
+                     seed: int = 0) -> dict:
+    """The change from ``first`` to ``second``, each one value per image for the same images
+    in the same order: the change of the median and of the mean over the images, each with
+    its ``level`` percentile interval over ``draws`` resamples of the images (with
+    replacement, both variants resampled alike, so the interval is that of a paired change).
+
+    Returns:
+        ``{"median": change, "median_interval": [low, high], "mean": ..., "mean_interval": ...}``.
+    """
+    a, b = np.asarray(first, dtype=float), np.asarray(second, dtype=float)
+    if a.shape != b.shape or a.ndim != 1 or len(a) == 0:
+        raise ValueError(f"first and second must hold one value per image, alike, got {a.shape} and {b.shape}")
+    picks = np.random.default_rng(seed).integers(0, len(a), size=(draws, len(a)))
+    tails = [(1 - level) / 2 * 100, (1 + level) / 2 * 100]
+    medians = np.median(b[picks], axis=1) - np.median(a[picks], axis=1)
+    means = (b - a)[picks].mean(axis=1)
+    return {"median": float(np.median(b) - np.median(a)), "median_interval": np.percentile(medians, tails).tolist(),
+            "mean": float((b - a).mean()), "mean_interval": np.percentile(means, tails).tolist()}

@@ -5,7 +5,11 @@ images (``sfs_torch.datasets``' validation side, never the shapes or R&H lightin
 benchmarks report on) with the lighting estimated, or given with ``--known`` (for one
 variant: ``"lighting": "known"`` among its overrides).
 ``--side test`` scores the test side instead (held-out shapes, R&H lightings): for
-reporting an ablation of choices already made, never for making one.
+reporting an ablation of choices already made, never for making one. Each variant after
+the first is compared with the first on the same images: the change of the median and of
+the mean error with their 90 % paired-bootstrap intervals (``_results.paired_bootstrap``;
+a few tenths of a degree are within them on 20-30 images), and the images better / worse
+by more than 1 deg.
 
     python benchmarks/tune.py --variants '{}' '{"training": {"brightness_jitter": 0.1}}'
     python benchmarks/tune.py --degradation all --shapes 4 --lights 3 --variants '{}' ...
@@ -38,7 +42,7 @@ from sfs_torch.datasets import (  # noqa: E402
 from sfs_torch.metrics import lmse, normal_metrics  # noqa: E402
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
 
-from _results import write_results  # noqa: E402
+from _results import paired_bootstrap, write_results  # noqa: E402
 
 # (label, overrides): each row adds to the one above it up to the learnt relief prior; then the default
 # (that prior without the relief scale) and the default given the true lighting
@@ -131,6 +135,17 @@ def main() -> None:
               f"{s['seconds']:>8.1f}  {labels[i]}")
     print("median, mean: of the per-image median angular errors (deg); lMSE: median; "
           "worse: images on which the variant's error exceeds the silhouette prior's")
+    first = [r["error_0"] for r in rows]
+    for i in range(1, len(variants)):
+        errors = [r[f"error_{i}"] for r in rows]
+        change = paired_bootstrap(first, errors)
+        change["better"] = sum(e < f - 1 for f, e in zip(first, errors))
+        change["worse"] = sum(e > f + 1 for f, e in zip(first, errors))
+        summary[i]["against_variant_0"] = change
+        (low, high), (mean_low, mean_high) = change["median_interval"], change["mean_interval"]
+        print(f"{i} against 0: median {change['median']:+.2f} (90 % paired bootstrap {low:+.2f} .. {high:+.2f}), "
+              f"mean {change['mean']:+.2f} ({mean_low:+.2f} .. {mean_high:+.2f}); "
+              f"better / worse by > 1 deg: {change['better']} / {change['worse']}")
     write_results(args, silhouette=silhouette, summary=summary, rows=rows)
 
 

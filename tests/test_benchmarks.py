@@ -1,4 +1,4 @@
-"""The benchmark scripts' own argument checks (their measurements are in docs/, not in tests)."""
+"""The benchmark scripts' own argument checks and helpers (their measurements are in docs/, not in tests)."""
 import subprocess
 import sys
 from pathlib import Path
@@ -27,3 +27,35 @@ def test_bas_relief_refuses_a_negative_lighting_prior_weight():
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2
     assert "--lighting-prior weights must be >= 0, got [0.3, -1.0]" in done.stderr
+
+
+def _paired_bootstrap():
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        from _results import paired_bootstrap
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    return paired_bootstrap
+
+
+def test_paired_bootstrap_of_a_uniform_change_is_exact():
+    # every resample moves by the same amount: the intervals shrink to the change itself
+    first = [3.0, 7.5, 1.0, 12.0, 9.0]
+    out = _paired_bootstrap()(first, [x - 0.5 for x in first], draws=200)
+    assert out["median"] == pytest.approx(-0.5) and out["mean"] == pytest.approx(-0.5)
+    assert out["median_interval"] == pytest.approx([-0.5, -0.5]) and out["mean_interval"] == pytest.approx([-0.5, -0.5])
+
+
+def test_paired_bootstrap_intervals_of_one_large_change():
+    # one image of ten 10 deg worse: the mean moves by 1, and a resample without it (about a third of them) by 0
+    first = list(range(10))
+    second = first[:9] + [19.0]
+    out = _paired_bootstrap()(first, second, draws=4000, level=0.5)
+    assert out["mean"] == pytest.approx(1.0) and out["median"] == 0.0
+    low, high = out["mean_interval"]
+    assert low == 0.0 and 1.0 <= high <= 2.0
+
+
+def test_paired_bootstrap_refuses_unpaired_values():
+    with pytest.raises(ValueError, match="one value per image"):
+        _paired_bootstrap()([1.0, 2.0], [1.0])
