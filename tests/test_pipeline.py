@@ -520,15 +520,6 @@ class TestReliefRounds:
         assert float(normal_metrics(from_depth, two.normals[None], interior).median[0]) < 1.0
         assert "relief rounds" in two.timings and "relief rounds" not in one.timings
 
-    @pytest.mark.parametrize("case", ["known lighting", "perspective"])
-    def test_left_alone_where_the_relief_stage_does_not_run(self, scene, case):
-        _, mask, sh, image = scene
-        kwargs = {"known lighting": {"lighting": sh}, "perspective": {"focal": 300.0}}[case]
-        config = dict(TINY, keep_prior=False)
-        one = sfs_torch.estimate(image, mask, config=config, progress=False, **kwargs)
-        two = sfs_torch.estimate(image, mask, config=dict(config, relief_rounds=2), progress=False, **kwargs)
-        assert torch.equal(two.normals, one.normals) and "relief rounds" not in two.timings
-
 
 class TestReliefRefinements:
     def test_the_refinement_starts_from_the_corrected_surface_and_the_prior_corrects_its_result(self, scene,
@@ -581,15 +572,17 @@ class TestReliefRefinements:
         torch.testing.assert_close(est.normals, coarse_normals(mask[None])[0] * mask)
         assert "relief scale and prior" in est.timings and "refinement after the relief prior" not in est.timings
 
-    @pytest.mark.parametrize("case", ["known lighting", "perspective"])
-    def test_left_alone_where_the_relief_stage_does_not_run(self, scene, case):
-        _, mask, sh, image = scene
-        kwargs = {"known lighting": {"lighting": sh}, "perspective": {"focal": 300.0}}[case]
-        config = dict(TINY, keep_prior=False)
-        once = sfs_torch.estimate(image, mask, config=dict(config, relief_refinements=1), progress=False, **kwargs)
-        without = sfs_torch.estimate(image, mask, config=config, progress=False, **kwargs)
-        assert torch.equal(once.normals, without.normals)
-        assert "refinement after the relief prior" not in once.timings
+
+@pytest.mark.parametrize("option, stage", [({"relief_rounds": 2}, "relief rounds"),
+                                           ({"relief_refinements": 1}, "refinement after the relief prior")])
+@pytest.mark.parametrize("case", ["known lighting", "perspective"])
+def test_relief_options_leave_alone_what_the_relief_stage_does_not_run_on(scene, case, option, stage):
+    _, mask, sh, image = scene
+    kwargs = {"known lighting": {"lighting": sh}, "perspective": {"focal": 300.0}}[case]
+    config = dict(TINY, keep_prior=False)
+    without = sfs_torch.estimate(image, mask, config=config, progress=False, **kwargs)
+    with_option = sfs_torch.estimate(image, mask, config=dict(config, **option), progress=False, **kwargs)
+    assert torch.equal(with_option.normals, without.normals) and stage not in with_option.timings
 
 
 class TestForestCache:
