@@ -13,6 +13,7 @@ by more than 1 deg.
 
     python benchmarks/tune.py --variants '{}' '{"training": {"brightness_jitter": 0.1}}'
     python benchmarks/tune.py --degradation all --shapes 4 --lights 3 --variants '{}' ...
+    python benchmarks/tune.py --first-shape 7 --shapes 3 --lights 8 --variants '{}' ...   # validation shapes 8-10
     python benchmarks/tune.py --side test --shapes 5 --lights 3 --variants '{"refine_rounds": 0}' '{}'
     python benchmarks/tune.py --side test --shapes 6 --lights 5 --no-sphere --ablation
 
@@ -71,6 +72,8 @@ def main() -> None:
     parser.add_argument("--side", choices=["validation", "test"], default="validation",
                         help="validation: tune on it; test: report an ablation on it")
     parser.add_argument("--shapes", type=int, default=3)
+    parser.add_argument("--first-shape", type=int, default=0,
+                        help="leave out the first this many of the --first-shape + --shapes shapes (the sphere stays)")
     parser.add_argument("--lights", type=int, default=3)
     parser.add_argument("--first-light", type=int, default=0,
                         help="skip this many lightings first (the same lightings --lights would give after them)")
@@ -93,7 +96,11 @@ def main() -> None:
                      "their own orientation and exposure")
     variants = [overrides for _, overrides in ABLATION] if args.ablation else [json.loads(v) for v in args.variants]
     labels = [label for label, _ in ABLATION] if args.ablation else [json.dumps(v) for v in variants]
-    shapes = scene_shapes(args.shapes, args.side, sphere=not args.no_sphere)
+    if args.first_shape < 0 or args.first_light < 0:
+        parser.error("--first-shape and --first-light must be >= 0")
+    shapes = scene_shapes(args.first_shape + args.shapes, args.side, sphere=not args.no_sphere)
+    sphere = shapes[: len(shapes) - args.first_shape - args.shapes]  # the sphere comes first, when asked for
+    shapes = sphere + shapes[len(sphere) + args.first_shape :]
     n = args.first_light + args.lights
     if args.side == "validation":
         lightings = validation_lightings(n, seed=args.light_seed, exposure=args.exposure)[args.first_light:]

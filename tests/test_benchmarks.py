@@ -59,3 +59,10 @@ def test_paired_bootstrap_intervals_of_one_large_change():
 def test_paired_bootstrap_refuses_unpaired_values():
     with pytest.raises(ValueError, match="one value per image"):
         _paired_bootstrap()([1.0, 2.0], [1.0])
+
+
+def test_tune_refuses_a_negative_first_shape():
+    done = subprocess.run([sys.executable, str(BENCHMARKS / "tune.py"), "--first-shape", "-1"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2
+    assert "--first-shape and --first-light must be >= 0" in done.stderr
