@@ -215,8 +215,9 @@ class PipelineConfig:
             fitted with it) and the prior corrects the result again. The prior fixes the
             bas-relief transform the refinement cannot see; from the corrected surface the
             refinement can fix some of what is left. 0 (the default) keeps the prior's
-            surface; each costs one refinement. Once helped every tuning-side set and was
-            about even on the test side (docs/pipeline.md).
+            surface; each costs one refinement. Once helped the tuning sets of seven
+            validation shapes, not those of the other three, and was about even on the test
+            side (docs/pipeline.md).
         relief_rounds: how many surfaces the relief stage (``relief_scale`` and
             ``relief_prior_passes``) averages. Each round after the first starts from the
             previous round's corrected surface: the lighting refitted to it, the final
