@@ -98,7 +98,10 @@ def main() -> None:
     labels = [label for label, _ in ABLATION] if args.ablation else [json.dumps(v) for v in variants]
     if args.first_shape < 0 or args.first_light < 0:
         parser.error("--first-shape and --first-light must be >= 0")
-    shapes = scene_shapes(args.first_shape + args.shapes, args.side, sphere=not args.no_sphere)
+    try:
+        shapes = scene_shapes(args.first_shape + args.shapes, args.side, sphere=not args.no_sphere)
+    except ValueError as error:
+        parser.error(f"--first-shape + --shapes: {error}")
     sphere = shapes[: len(shapes) - args.first_shape - args.shapes]  # the sphere comes first, when asked for
     shapes = sphere + shapes[len(sphere) + args.first_shape :]
     n = args.first_light + args.lights

@@ -61,8 +61,13 @@ def test_paired_bootstrap_refuses_unpaired_values():
         _paired_bootstrap()([1.0, 2.0], [1.0])
 
 
-def test_tune_refuses_a_negative_first_shape():
-    done = subprocess.run([sys.executable, str(BENCHMARKS / "tune.py"), "--first-shape", "-1"],
+@pytest.mark.parametrize("arguments, message", [
+    (["--first-shape", "-1"], "--first-shape and --first-light must be >= 0"),
+    (["--first-shape", "8", "--shapes", "3"], "--first-shape + --shapes: n must be an integer in [0, 10] on the "
+                                               "validation side, got 11"),
+])
+def test_tune_refuses_shapes_the_side_does_not_have(arguments, message):
+    done = subprocess.run([sys.executable, str(BENCHMARKS / "tune.py"), *arguments],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2
-    assert "--first-shape and --first-light must be >= 0" in done.stderr
+    assert message in done.stderr
