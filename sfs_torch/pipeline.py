@@ -23,7 +23,9 @@
    transform a learnt prior on shapes in their poses reads off it
    (:mod:`sfs_torch.relief_prior`, ``relief_prior_passes``, not in the paper; optionally
    first deepened by a factor, ``relief_scale``, ``relief_slope_power``; optionally a
-   second such round from the corrected surface, the two surfaces averaged, ``relief_rounds``);
+   second such round from the corrected surface, the two surfaces averaged, ``relief_rounds``;
+   optionally the joint refinement again from the corrected surface and the prior after it,
+   ``relief_refinements``);
 7. optional integrability refinement (:mod:`sfs_torch.integrability`).
 """
 from __future__ import annotations
@@ -839,6 +841,12 @@ def _scaled_relief(image: Tensor, mask: Tensor, depth: Tensor, normals: Tensor, 
     return depth, normals, sh
 
 
+def _prior_alone(cfg: PipelineConfig) -> PipelineConfig:
+    """``cfg`` for the relief stage's later corrections: the learnt prior without the relief
+    scale, which deepens the first corrected surface alone."""
+    return replace(cfg, relief_scale=1.0, relief_slope_power=0.0)
+
+
 def _refined_relief(image: Tensor, mask: Tensor, surface: tuple, among: Tensor, cfg: PipelineConfig) -> tuple:
     """``(depth, normals, lighting)`` of the batch whose ``surface`` is the relief stage's
     ``(depth, normals, lighting, confidence)``, its images in ``among`` (B,) bool put
@@ -850,7 +858,7 @@ def _refined_relief(image: Tensor, mask: Tensor, surface: tuple, among: Tensor, 
         return depth, normals, sh
     depth, normals, sh = depth.clone(), normals.clone(), sh.clone()
     m = mask[items]
-    later = replace(cfg, relief_scale=1.0, relief_slope_power=0.0)
+    later = _prior_alone(cfg)
     skipped = torch.zeros_like(items, dtype=torch.bool)  # none of them: each is refined and corrected
     for _ in range(cfg.relief_refinements):
         refined = _refine(image[items], m, normals[items], sh[items], confidence[items], skipped, cfg, False, None,
@@ -870,7 +878,7 @@ def _relief_rounds(image: Tensor, mask: Tensor, surface: tuple, among: Tensor, p
     if len(items) == 0:
         return depth, normals, sh
     m = mask[items]
-    later = replace(cfg, relief_scale=1.0, relief_slope_power=0.0)  # the first round's surface alone is deepened
+    later = _prior_alone(cfg)
     depths, fields = [depth[items]], [normals[items]]
     for _ in range(cfg.relief_rounds - 1):
         surface = _final_rounds(image, mask, surface, among, per_image, db, timer, None, None)
