@@ -9,7 +9,9 @@ closest to the truth, over three families:
 
 - **scale**: ``lam`` alone (``mu = nu = 0``), a deeper or flatter relief;
 - **tilt**: ``mu, nu`` alone (``lam = 1``), a plane added to the depth;
-- **both**: every ``(lam, mu, nu)`` of the grids.
+- **both**: every ``(lam, mu, nu)`` of the grids;
+- **fitted**: any ``(lam, mu, nu)``, found by ``sfs_torch.relief_prior.best_relief`` (L-BFGS
+  on the mean angle to the truth) from the best of the grids.
 
 The transformed normals are ``normalize(lam n_x - mu n_z, lam n_y - nu n_z, n_z)``
 (``sfs_torch.integrability.bas_relief_normals``, as the default's ``relief_scale``). These
@@ -72,7 +74,13 @@ from sfs_torch.natural_lighting import lighting_prior_energy, load_lighting_prio
 from sfs_torch.pipeline import RELIEF_REFERENCE_SLOPE, PipelineConfig, _relief_factor, resolve_config  # noqa: E402
 from sfs_torch.reflectance_map import refit_lighting  # noqa: E402
 from sfs_torch.refine import photometric_residual, refine_shape_and_lighting  # noqa: E402
-from sfs_torch.relief_prior import apply_relief, load_relief_net, predict_relief  # noqa: E402
+from sfs_torch.relief_prior import (  # noqa: E402
+    ReliefTransform,
+    apply_relief,
+    best_relief,
+    load_relief_net,
+    predict_relief,
+)
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
 
 from _results import write_results  # noqa: E402
@@ -159,8 +167,12 @@ def main() -> None:
         for name, member in FAMILIES.items():
             best = min((t for t in grid if member(t)), key=errors.get)
             row[name], row[f"{name}_transform"] = errors[best], best
+        fitted = best_relief(est.normals, scene.normals, mask,
+                            start=ReliefTransform(*(torch.tensor([v]) for v in row["both_transform"])))
+        row["fitted"] = error(apply_relief(est.normals, mask, fitted))
+        row["fitted_transform"] = (float(fitted.scale), float(fitted.tilt_x), float(fitted.tilt_y))
         line = (f"{scene.name:<44} default {row['default']:6.2f} | scale {row['scale']:6.2f} tilt {row['tilt']:6.2f}"
-                f" both {row['both']:6.2f} at {row['both_transform']}")
+                f" both {row['both']:6.2f} at {row['both_transform']} fitted {row['fitted']:6.2f}")
         if args.hypotheses is not None:
             row["hypotheses"] = []
             for mu, nu in itertools.product((-args.hypotheses, 0.0, args.hypotheses), repeat=2):
@@ -190,13 +202,15 @@ def main() -> None:
         rows.append(row)
         print(line + f"  ({time.perf_counter() - start:.0f} s)", flush=True)
 
-    columns = ["prior", "default", "scale", "tilt", "both", "rule"] + [f"prior_{p}" for p in RELIEF_PRIOR_PASSES]
+    columns = (["prior", "default", "scale", "tilt", "both", "fitted", "rule"]
+               + [f"prior_{p}" for p in RELIEF_PRIOR_PASSES])
     if args.hypotheses is not None:
         columns += ["by_loss", "by_photometric"]
     for w in args.lighting_prior or ():
         columns.append(f"by_prior_{w:g}")
     labels = {"prior": "silhouette prior", "default": "the default call", "scale": "oracle scale",
-              "tilt": "oracle tilt", "both": "oracle scale and tilt", "by_loss": "tilt by refinement loss",
+              "tilt": "oracle tilt", "both": "oracle scale and tilt",
+              "fitted": "oracle transform, fitted", "by_loss": "tilt by refinement loss",
               "by_photometric": "tilt by photometric residual", "rule": "the default's relief scale",
               **{f"prior_{p}": f"that + {p} relief-prior pass(es)" for p in RELIEF_PRIOR_PASSES}}
     labels.update({f"by_prior_{w:g}": f"by photometric + {w:g} x prior" for w in args.lighting_prior or ()})

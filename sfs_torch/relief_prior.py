@@ -39,7 +39,7 @@ from .integrability import bas_relief_normals
 __all__ = [
     "ReliefTransform", "ReliefNet", "ReliefPrior", "crop_to_object", "predict_relief", "apply_relief",
     "compose_relief", "relief_depth", "load_relief_net", "save_relief_net", "fit_relief_net",
-    "relief_training_views", "mean_angle", "RELIEF_CROP_SIZE",
+    "relief_training_views", "mean_angle", "best_relief", "RELIEF_CROP_SIZE",
 ]
 
 RELIEF_CROP_SIZE = 64
@@ -311,6 +311,65 @@ def mean_angle(normals: Tensor, truth: Tensor, mask: Tensor) -> Tensor:
     :math:`(B, 3, H, W), (B, 3, H, W), (B, 1, H, W) -> (B,)`; :func:`fit_relief_net`'s loss."""
     angle = torch.acos((normals * truth).sum(1).clamp(-1 + 1e-6, 1 - 1e-6))
     return (angle * mask[:, 0]).sum((1, 2)) / mask[:, 0].sum((1, 2)).clamp_min(1)
+
+
+def best_relief(normals: Tensor, reference: Tensor, mask: Tensor, *, start: Optional[ReliefTransform] = None,
+                iterations: int = 100) -> ReliefTransform:
+    r"""The bas-relief transform that takes each normal field closest to a reference one.
+
+    Minimises :func:`mean_angle` between the transformed ``normals`` (:func:`apply_relief`)
+    and ``reference`` over the log scale and the two tilts of each image, by L-BFGS from
+    ``start`` (the identity by default). With the true normals as ``reference`` this is an
+    oracle: the error an orthographic estimate keeps once its bas-relief ambiguity is
+    resolved exactly (``benchmarks/bas_relief.py``), the usual way to score estimates that
+    are only defined up to that transform.
+
+    Args:
+        normals: :math:`(B, 3, H, W)` or :math:`(3, H, W)` unit normals on the mask.
+        reference: unit normals of the same shape.
+        mask: :math:`(B, 1, H, W)` or :math:`(1, H, W)` bool or {0, 1}, none empty.
+        start: the transform to start from, :math:`(B,)` fields (e.g. the best of a grid:
+            the angle is not convex in the transform).
+        iterations: L-BFGS iterations, an integer >= 1.
+
+    Returns:
+        :class:`ReliefTransform` of :math:`(B,)` tensors on ``normals``' device, not
+        differentiable.
+
+    Raises:
+        ValueError: wrong shapes or sizes, an empty mask, non-unit normals on the mask, bad ``iterations``.
+    """
+    normals, _ = to_batch(normals, "normals", 3)
+    reference, _ = to_batch(reference, "reference", 3)
+    mask, _ = to_batch(mask, "mask", 1)
+    check_shape(normals, "normals", "B 3 H W")
+    check_shape(reference, "reference", "B 3 H W")
+    check_same_size(normals, "normals", reference, "reference")
+    check_same_size(normals, "normals", mask, "mask")
+    mask = check_mask(mask, allow_full=True)
+    if not is_integer(iterations, 1):
+        raise ValueError(f"iterations must be an integer >= 1, got {iterations!r}")
+    for name, field in (("normals", normals), ("reference", reference)):
+        check_unit_vectors(field.permute(0, 2, 3, 1)[mask[:, 0]], name, " on the mask")
+    normals, reference, weights = normals.detach().double(), reference.detach().double(), mask.double()
+    batch = normals.shape[0]
+    if start is None:
+        start = ReliefTransform(*(torch.full((batch,), v, device=normals.device) for v in (1.0, 0.0, 0.0)))
+    params = torch.stack([start.scale.log(), start.tilt_x, start.tilt_y]).to(normals).detach().requires_grad_(True)
+    optimiser = torch.optim.LBFGS([params], max_iter=iterations, line_search_fn="strong_wolfe")
+
+    def closure() -> Tensor:
+        optimiser.zero_grad()
+        moved = bas_relief_normals(normals, params[0].exp(), params[1], params[2]) * weights
+        # a sum of independent per-image terms: its optimum is every image's own
+        loss = mean_angle(moved, reference, weights).sum()
+        loss.backward()
+        return loss
+
+    with torch.enable_grad():
+        optimiser.step(closure)
+    found = params.detach().to(start.scale.dtype)
+    return ReliefTransform(scale=found[0].exp(), tilt_x=found[1], tilt_y=found[2])
 
 
 def fit_relief_net(views: Tensor, *, epochs: int = 8, batch_size: int = 64, tilt_std: float = 0.4,

@@ -10,6 +10,7 @@ from sfs_torch.relief_prior import (
     ReliefPrior,
     ReliefTransform,
     apply_relief,
+    best_relief,
     compose_relief,
     crop_to_object,
     fit_relief_net,
@@ -112,6 +113,42 @@ class TestTransforms:
         assert bool((moved[~mask] == 0).all())
         # heights keep their mean over the object: the transform turns it about its centroid
         torch.testing.assert_close(moved[mask].mean(), 1.4 * depth[mask].mean())
+
+
+class TestBestRelief:
+    def test_recovers_known_transforms_of_a_batch(self):
+        (a, ma), (b, mb) = blob_views(0, 2)
+        normals, mask = torch.cat([a, b]), torch.cat([ma, mb])
+        applied = ReliefTransform(torch.tensor([0.7, 1.5]), torch.tensor([0.3, -0.5]), torch.tensor([-0.2, 0.1]))
+        moved = apply_relief(normals, mask, applied)
+        back = apply_relief(moved, mask, best_relief(moved, normals, mask))
+        assert float(normal_metrics(moved, normals, mask).median.min()) > 10
+        assert float(normal_metrics(back, normals, mask).median.max()) < 0.05
+        # the transform found is the inverse of the one applied: scale 1 / s, tilts -t / s
+        found = best_relief(moved, normals, mask)
+        torch.testing.assert_close(found.scale, 1 / applied.scale, atol=2e-3, rtol=2e-3)
+        torch.testing.assert_close(found.tilt_x, -applied.tilt_x / applied.scale, atol=2e-3, rtol=2e-3)
+
+    def test_leaves_a_field_at_its_reference_and_starts_where_asked(self):
+        normals, mask = next(blob_views(2, 1))
+        same = best_relief(normals, normals, mask)
+        torch.testing.assert_close(same.scale, torch.ones(1), atol=1e-4, rtol=0)
+        start = transform(2.0, 0.5, 0.5)
+        assert float(best_relief(normals, normals, mask, start=start, iterations=1).scale) != 1.0
+        converged = best_relief(normals, normals, mask, start=start)
+        torch.testing.assert_close(converged.tilt_y, torch.zeros(1), atol=1e-3, rtol=0)
+
+    @pytest.mark.parametrize("bad, message", [
+        (dict(iterations=0), "iterations must be an integer >= 1"),
+        (dict(reference=torch.zeros(1, 3, 32, 32)), "normals and reference must have the same batch size"),
+        (dict(reference=torch.zeros(1, 3, 64, 64)), "reference must have unit length"),
+        (dict(mask=torch.zeros(1, 1, 64, 64, dtype=torch.bool)), "mask"),
+    ])
+    def test_bad_input_is_one_clear_error(self, bad, message):
+        normals, mask = sphere(64, radius=28.0)
+        args = {**dict(normals=normals[None], reference=normals[None], mask=mask[None]), **bad}
+        with pytest.raises(ValueError, match=message):
+            best_relief(args.pop("normals"), args.pop("reference"), args.pop("mask"), **args)
 
 
 class TestCrop:
