@@ -337,7 +337,8 @@ def best_relief(normals: Tensor, reference: Tensor, mask: Tensor, *, start: Opti
         differentiable.
 
     Raises:
-        ValueError: wrong shapes or sizes, an empty mask, non-unit normals on the mask, bad ``iterations``.
+        ValueError: wrong shapes or sizes, an empty mask, non-unit normals on the mask, bad
+            ``start`` or ``iterations``.
     """
     normals, _ = to_batch(normals, "normals", 3)
     reference, _ = to_batch(reference, "reference", 3)
@@ -355,6 +356,9 @@ def best_relief(normals: Tensor, reference: Tensor, mask: Tensor, *, start: Opti
     batch = normals.shape[0]
     if start is None:
         start = ReliefTransform(*(torch.full((batch,), v, device=normals.device) for v in (1.0, 0.0, 0.0)))
+    elif not isinstance(start, ReliefTransform) or any(
+            not isinstance(x, Tensor) or x.numel() != batch for x in (start.scale, start.tilt_x, start.tilt_y)):
+        raise ValueError(f"start must be a ReliefTransform of one value per image ({batch}), got {start!r}")
     params = torch.stack([start.scale.log(), start.tilt_x, start.tilt_y]).to(normals).detach().requires_grad_(True)
     optimiser = torch.optim.LBFGS([params], max_iter=iterations, line_search_fn="strong_wolfe")
 

@@ -140,6 +140,8 @@ class TestBestRelief:
 
     @pytest.mark.parametrize("bad, message", [
         (dict(iterations=0), "iterations must be an integer >= 1"),
+        (dict(start=(1.0, 0.0, 0.0)), "start must be a ReliefTransform of one value per image"),
+        (dict(start=ReliefTransform(torch.ones(2), torch.zeros(2), torch.zeros(2))), "start must be a ReliefTransform"),
         (dict(reference=torch.zeros(1, 3, 32, 32)), "normals and reference must have the same batch size"),
         (dict(reference=torch.zeros(1, 3, 64, 64)), "reference must have unit length"),
         (dict(mask=torch.zeros(1, 1, 64, 64, dtype=torch.bool)), "mask"),
