@@ -62,6 +62,11 @@ class ReliefTransform:
     tilt_y: Tensor
 
 
+def _identity(batch: int, device: torch.device) -> ReliefTransform:
+    """The transform that leaves each of ``batch`` fields as it is (float32)."""
+    return ReliefTransform(*(torch.full((batch,), v, device=device) for v in (1.0, 0.0, 0.0)))
+
+
 def compose_relief(first: ReliefTransform, then: ReliefTransform) -> ReliefTransform:
     """The transform of applying ``first`` and then ``then``."""
     return ReliefTransform(scale=first.scale * then.scale, tilt_x=then.scale * first.tilt_x + then.tilt_x,
@@ -200,7 +205,7 @@ def predict_relief(normals: Tensor, mask: Tensor, net: ReliefNet, passes: int = 
     check_unit_vectors(normals.permute(0, 2, 3, 1)[mask[:, 0]], "normals", " on the mask")
     device = next(net.parameters()).device
     batch = normals.shape[0]
-    total = ReliefTransform(*(torch.full((batch,), v, device=normals.device) for v in (1.0, 0.0, 0.0)))
+    total = _identity(batch, normals.device)
     current = normals * mask
     was_training = net.training
     net.eval()
@@ -355,7 +360,7 @@ def best_relief(normals: Tensor, reference: Tensor, mask: Tensor, *, start: Opti
     normals, reference, weights = normals.detach().double(), reference.detach().double(), mask.double()
     batch = normals.shape[0]
     if start is None:
-        start = ReliefTransform(*(torch.full((batch,), v, device=normals.device) for v in (1.0, 0.0, 0.0)))
+        start = _identity(batch, normals.device)
     elif not isinstance(start, ReliefTransform) or any(
             not isinstance(x, Tensor) or x.numel() != batch for x in (start.scale, start.tilt_x, start.tilt_y)):
         raise ValueError(f"start must be a ReliefTransform of one value per image ({batch}), got {start!r}")
