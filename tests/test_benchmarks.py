@@ -71,3 +71,16 @@ def test_tune_refuses_shapes_the_side_does_not_have(arguments, message):
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2
     assert message in done.stderr
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["--views", "0"], "--views must be at least 1, got 0"),
+    (["--tilt-std", "-0.1"], "--log-scale-std and --tilt-std must be >= 0"),
+    (["--side", "test", "--shapes", "11"], "n must be an integer in [0, 10] on the test side, got 11"),
+    (["--weights", "no_such_file.npz"], "'no_such_file.npz' holds no relief prior's weights"),
+])
+def test_relief_floor_refuses_bad_arguments_before_any_view(arguments, message):
+    done = subprocess.run([sys.executable, str(BENCHMARKS / "relief_floor.py"), *arguments],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2
+    assert message in done.stderr
