@@ -132,7 +132,7 @@ class ReliefNet(nn.Module):
     lies is the cue. The last layer starts at zero, so an untrained network is the identity.
     """
 
-    def __init__(self, hidden: int = 256):
+    def __init__(self, hidden: int = 1024):
         super().__init__()
         channels = [4, 32, 32, 64, 64, 128]
         layers = []
@@ -381,9 +381,9 @@ def best_relief(normals: Tensor, reference: Tensor, mask: Tensor, *, start: Opti
     return ReliefTransform(scale=found[0].exp(), tilt_x=found[1], tilt_y=found[2])
 
 
-def fit_relief_net(views: Tensor, *, epochs: int = 8, batch_size: int = 64, tilt_std: float = 0.4,
+def fit_relief_net(views: Tensor, *, epochs: int = 16, batch_size: int = 64, tilt_std: float = 0.4,
                    log_scale_std: float = 0.5, perturbation: float = 0.4, learning_rate: float = 2e-3,
-                   hidden: int = 256, seed: int = 0, progress: Optional[Callable] = None) -> ReliefNet:
+                   hidden: int = 1024, seed: int = 0, progress: Optional[Callable] = None) -> ReliefNet:
     """Train a :class:`ReliefNet` on true cropped normal maps (:func:`relief_training_views`), on the CPU.
 
     Each step draws a batch, mirrors it at random, perturbs its slopes smoothly
