@@ -17,8 +17,9 @@ transform that takes it back to the shape it most likely is. It is trained by
 perturbation of its slopes, to minimise the mean angle between the corrected field and
 the true one. ``tools/build_relief_prior.py`` builds the weights that ship with the
 package (``data/relief_prior.npz``); :func:`load_relief_net` loads them.
-:func:`predict_relief` averages the network over the four mirror images of the field, so
-mirrored input gives a mirrored transform exactly.
+:func:`predict_relief` averages the network over the eight symmetries of the square crop
+(mirrors, quarter turns), so a mirrored or turned field gets the mirrored or turned
+transform exactly.
 """
 from __future__ import annotations
 
@@ -149,23 +150,36 @@ class ReliefNet(nn.Module):
         return self.head(self.features(crops))
 
 
-def _mirrored(crops: Tensor, flip_x: bool, flip_y: bool) -> Tensor:
-    """The crops seen in a mirror: columns reversed negate ``n_x``, rows reversed ``n_y``."""
+# the eight symmetries of the square crop: mirror columns, mirror rows, then transpose
+_SYMMETRIES = [(fx, fy, t) for t in (False, True) for fx in (False, True) for fy in (False, True)]
+
+
+def _seen_in(crops: Tensor, flip_x: bool, flip_y: bool, transpose: bool) -> Tensor:
+    """The crops under one symmetry of the square. Columns reversed negate ``n_x``, rows
+    reversed ``n_y``; a transpose (the reflection ``u -> -v, v -> -u``: rows are ``-v``)
+    swaps ``n_x`` and ``n_y`` and negates both."""
     sign = torch.tensor([-1.0 if flip_x else 1.0, -1.0 if flip_y else 1.0, 1.0, 1.0], device=crops.device)
     dims = [d for d, f in ((-1, flip_x), (-2, flip_y)) if f]
     out = crops * sign[:, None, None]
-    return out.flip(dims) if dims else out
+    out = out.flip(dims) if dims else out
+    if transpose:
+        out = out.transpose(-2, -1)
+        out = torch.stack([-out[:, 1], -out[:, 0], out[:, 2], out[:, 3]], 1)
+    return out
+
+
+def _seen_back(raw: Tensor, flip_x: bool, flip_y: bool, transpose: bool) -> Tensor:
+    """The network's ``(B, 3)`` output for :func:`_seen_in`'s crops, in the original crops' frame."""
+    log_scale, tilt_x, tilt_y = raw.unbind(1)
+    if transpose:
+        tilt_x, tilt_y = -tilt_y, -tilt_x
+    return torch.stack([log_scale, -tilt_x if flip_x else tilt_x, -tilt_y if flip_y else tilt_y], 1)
 
 
 def _network_transform(net: ReliefNet, crops: Tensor) -> ReliefTransform:
-    """The network's transform averaged over the four mirror images of ``crops``."""
-    outputs = []
-    for flip_x in (False, True):
-        for flip_y in (False, True):
-            raw = net(_mirrored(crops, flip_x, flip_y))
-            outputs.append(torch.stack([raw[:, 0], -raw[:, 1] if flip_x else raw[:, 1],
-                                        -raw[:, 2] if flip_y else raw[:, 2]], 1))
-    return _as_transform(torch.stack(outputs).mean(0))
+    """The network's transform averaged over the eight symmetries of the square crop."""
+    raw = net(torch.cat([_seen_in(crops, *g) for g in _SYMMETRIES])).chunk(len(_SYMMETRIES))
+    return _as_transform(torch.stack([_seen_back(r, *g) for r, g in zip(raw, _SYMMETRIES)]).mean(0))
 
 
 def _as_transform(raw: Tensor) -> ReliefTransform:
@@ -176,10 +190,11 @@ def _as_transform(raw: Tensor) -> ReliefTransform:
 def predict_relief(normals: Tensor, mask: Tensor, net: ReliefNet, passes: int = 2) -> ReliefTransform:
     r"""The transform the prior expects to correct each orthographic normal field.
 
-    Each pass crops the field (:func:`crop_to_object`), reads the network on its four
-    mirror images, averages their transforms and applies the mean to the field; a second
-    pass reads the corrected field again (on the tuning side it took the error further,
-    docs/pipeline.md). The result is the composition of the passes.
+    Each pass crops the field (:func:`crop_to_object`), reads the network on the eight
+    symmetries of the crop (mirrors, quarter turns), averages their transforms and applies
+    the mean to the field; a second pass reads the corrected field again (on the tuning
+    side it took the error further, docs/pipeline.md). The result is the composition of
+    the passes.
 
     Args:
         normals: :math:`(B, 3, H, W)` or :math:`(3, H, W)` unit normals on the mask.
@@ -423,7 +438,7 @@ def fit_relief_net(views: Tensor, *, epochs: int = 16, batch_size: int = 64, til
         for step in range(steps_per_epoch):
             batch = views[order[step * batch_size:(step + 1) * batch_size]]
             flips = torch.rand(2, generator=generator) < 0.5
-            batch = _mirrored(batch, bool(flips[0]), bool(flips[1]))
+            batch = _seen_in(batch, bool(flips[0]), bool(flips[1]), False)
             truth, mask = batch[:, :3], batch[:, 3:]
             n = len(batch)
             scale = (torch.randn(n, generator=generator) * log_scale_std).exp()

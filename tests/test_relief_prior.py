@@ -54,15 +54,22 @@ class TestShippedPrior:
             after.append(float(normal_metrics(corrected, normals, mask).median[0]))
         assert np.mean(before) > 14 and np.mean(after) < 0.6 * np.mean(before)
 
-    def test_a_mirrored_field_gets_the_mirrored_transform(self):
+    @pytest.mark.parametrize("symmetry", ["mirror", "quarter turn"])
+    def test_a_mirrored_or_turned_field_gets_the_mirrored_or_turned_transform(self, symmetry):
         normals, mask = next(blob_views(0, 1))
         wrong = apply_relief(normals, mask, transform(1.1, 0.3, 0.2))
-        mirrored = torch.stack([-wrong[:, 0], wrong[:, 1], wrong[:, 2]], 1).flip(-1)
+        if symmetry == "mirror":  # u -> -u
+            moved = torch.stack([-wrong[:, 0], wrong[:, 1], wrong[:, 2]], 1).flip(-1)
+            moved_mask = mask.flip(-1)
+        else:  # counterclockwise on screen: (u, v) -> (-v, u)
+            moved = torch.stack([-wrong[:, 1], wrong[:, 0], wrong[:, 2]], 1).rot90(1, (-2, -1))
+            moved_mask = mask.rot90(1, (-2, -1))
         net = load_relief_net()
-        a, b = predict_relief(wrong, mask, net, passes=1), predict_relief(mirrored, mask.flip(-1), net, passes=1)
+        a, b = predict_relief(wrong, mask, net, passes=1), predict_relief(moved, moved_mask, net, passes=1)
+        expected = (-a.tilt_x, a.tilt_y) if symmetry == "mirror" else (-a.tilt_y, a.tilt_x)
         torch.testing.assert_close(b.scale, a.scale, atol=1e-4, rtol=1e-4)
-        torch.testing.assert_close(b.tilt_x, -a.tilt_x, atol=1e-4, rtol=1e-4)
-        torch.testing.assert_close(b.tilt_y, a.tilt_y, atol=1e-4, rtol=1e-4)
+        torch.testing.assert_close(b.tilt_x, expected[0], atol=1e-4, rtol=1e-4)
+        torch.testing.assert_close(b.tilt_y, expected[1], atol=1e-4, rtol=1e-4)
 
     def test_module_form_and_passes(self):
         normals, mask = next(blob_views(0, 1))
