@@ -46,6 +46,8 @@ __all__ = [
 RELIEF_CROP_SIZE = 64
 # the square crop's side over the object's larger bounding-box side: a margin of background
 CROP_MARGIN = 1.1
+# the margins predict_relief reads the network at and averages over (tuning images, docs/pipeline.md)
+_READ_MARGINS = (1.0, 1.1, 1.25)
 
 
 @dataclass
@@ -95,21 +97,27 @@ def relief_depth(depth: Tensor, mask: Tensor, transform: ReliefTransform) -> Ten
     return out
 
 
-def crop_to_object(normals: Tensor, mask: Tensor, size: int = RELIEF_CROP_SIZE) -> Tensor:
+def crop_to_object(normals: Tensor, mask: Tensor, size: int = RELIEF_CROP_SIZE,
+                   margin: float = CROP_MARGIN) -> Tensor:
     r"""The network's input: :math:`(B, 3, H, W), (B, 1, H, W) -> (B, 4, size, size)`.
 
-    A square around each object's bounding box (its larger side times 1.1), resampled
-    bilinearly to ``size x size``: the three normal components, renormalised and 0 off
-    the object, and the object mask as a fourth channel (1 where the resampled mask is
-    above one half). The crop keeps the image's orientation, so the normal components and
+    A square around each object's bounding box (its larger side times ``margin``, 1.1 in
+    training), resampled bilinearly to ``size x size``: the three normal components,
+    renormalised and 0 off the object, and the object mask as a fourth channel (1 where
+    the resampled mask is above one half). The crop keeps the image's orientation, so the normal components and
     the tilt keep their meaning.
+
+    Raises:
+        ValueError: a ``margin`` below 1 (the square would cut the object).
     """
+    if not is_number(margin, 1):
+        raise ValueError(f"margin must be a finite number >= 1, got {margin!r}")
     crops = []
     for b in range(normals.shape[0]):
         m = mask[b, 0]
         rows, cols = torch.nonzero(m, as_tuple=True)
         cy, cx = (rows.min() + rows.max()) / 2, (cols.min() + cols.max()) / 2
-        half = max(int(rows.max() - rows.min()), int(cols.max() - cols.min())) / 2 * CROP_MARGIN + 1
+        half = max(int(rows.max() - rows.min()), int(cols.max() - cols.min())) / 2 * margin + 1
         height, width = m.shape
         t = torch.linspace(-1, 1, size, dtype=torch.float64, device=normals.device)
         gy = (cy + t * half) / max(height - 1, 1) * 2 - 1
@@ -177,9 +185,12 @@ def _seen_back(raw: Tensor, flip_x: bool, flip_y: bool, transpose: bool) -> Tens
 
 
 def _network_transform(net: ReliefNet, crops: Tensor) -> ReliefTransform:
-    """The network's transform averaged over the eight symmetries of the square crop."""
-    raw = net(torch.cat([_seen_in(crops, *g) for g in _SYMMETRIES])).chunk(len(_SYMMETRIES))
-    return _as_transform(torch.stack([_seen_back(r, *g) for r, g in zip(raw, _SYMMETRIES)]).mean(0))
+    """The network's transform for crops :math:`(M, B, 4, S, S)` of each of ``B`` fields (at
+    ``M`` margins), averaged over the crops and over the eight symmetries of each square."""
+    views = crops.flatten(0, 1)
+    raw = net(torch.cat([_seen_in(views, *g) for g in _SYMMETRIES])).chunk(len(_SYMMETRIES))
+    back = torch.stack([_seen_back(r, *g) for r, g in zip(raw, _SYMMETRIES)])
+    return _as_transform(back.reshape(-1, crops.shape[1], 3).mean(0))
 
 
 def _as_transform(raw: Tensor) -> ReliefTransform:
@@ -190,11 +201,11 @@ def _as_transform(raw: Tensor) -> ReliefTransform:
 def predict_relief(normals: Tensor, mask: Tensor, net: ReliefNet, passes: int = 2) -> ReliefTransform:
     r"""The transform the prior expects to correct each orthographic normal field.
 
-    Each pass crops the field (:func:`crop_to_object`), reads the network on the eight
-    symmetries of the crop (mirrors, quarter turns), averages their transforms and applies
-    the mean to the field; a second pass reads the corrected field again (on the tuning
-    side it took the error further, docs/pipeline.md). The result is the composition of
-    the passes.
+    Each pass crops the field (:func:`crop_to_object`) at three margins (1.0, 1.1, 1.25),
+    reads the network on the eight symmetries of each crop (mirrors, quarter turns),
+    averages the 24 transforms and applies the mean to the field; a second pass reads the
+    corrected field again (on the tuning side both took the error further,
+    docs/pipeline.md). The result is the composition of the passes.
 
     Args:
         normals: :math:`(B, 3, H, W)` or :math:`(3, H, W)` unit normals on the mask.
@@ -227,7 +238,8 @@ def predict_relief(normals: Tensor, mask: Tensor, net: ReliefNet, passes: int = 
     try:
         with torch.no_grad():
             for _ in range(passes):
-                step = _network_transform(net, crop_to_object(current, mask).to(device))
+                crops = torch.stack([crop_to_object(current, mask, margin=m) for m in _READ_MARGINS])
+                step = _network_transform(net, crops.to(device))
                 step = ReliefTransform(*(x.to(normals.device) for x in (step.scale, step.tilt_x, step.tilt_y)))
                 current = apply_relief(current, mask, step)
                 total = compose_relief(total, step)

@@ -161,21 +161,28 @@ class TestBestRelief:
 
 
 class TestCrop:
-    def test_a_sphere_off_centre_fills_the_crop_centred(self):
+    @pytest.mark.parametrize("margin", [1.0, 1.1, 1.25])
+    def test_a_sphere_off_centre_fills_the_crop_centred(self, margin):
         normals, mask = sphere(40, radius=19.0)
         big_n = torch.zeros(1, 3, 100, 120)
         big_m = torch.zeros(1, 1, 100, 120, dtype=torch.bool)
         big_n[..., 10:50, 70:110], big_m[..., 10:50, 70:110] = normals, mask
-        crop = crop_to_object(big_n, big_m)
+        crop = crop_to_object(big_n, big_m, margin=margin)
         assert crop.shape == (1, 4, 64, 64)
         inside = crop[0, 3].bool()
         # the disc (radius 19 px, 37 px between its outer pixel centres) in a square of
-        # 37 * 1.1 + 2 px resampled to 64: a disc of radius 19 * 63 / 42.7 px, symmetric
-        assert abs(int(inside.sum()) - np.pi * (19 * 63 / (37 * 1.1 + 2)) ** 2) < 60
+        # 37 * margin + 2 px resampled to 64: a disc of radius 19 * 63 / (37 * margin + 2) px
+        assert abs(int(inside.sum()) - np.pi * (19 * 63 / (37 * margin + 2)) ** 2) < 60
         assert torch.equal(inside, inside.flip(-1)) and torch.equal(inside, inside.flip(-2))
         # orientation kept: the right half faces right, the top half up
         assert float(crop[0, 0, 32, 50]) > 0.5 and float(crop[0, 1, 14, 32]) > 0.5
         torch.testing.assert_close(crop[0, :3].norm(dim=0)[inside], torch.ones(int(inside.sum())))
+
+    @pytest.mark.parametrize("margin", [0.9, float("nan"), True])
+    def test_a_margin_that_cuts_the_object_is_one_clear_error(self, margin):
+        normals, mask = sphere(40, radius=19.0)
+        with pytest.raises(ValueError, match="margin must be a finite number >= 1"):
+            crop_to_object(normals[None], mask[None], margin=margin)
 
 
 class TestTraining:
