@@ -104,8 +104,8 @@ def crop_to_object(normals: Tensor, mask: Tensor, size: int = RELIEF_CROP_SIZE,
     A square around each object's bounding box (its larger side times ``margin``, 1.1 in
     training), resampled bilinearly to ``size x size``: the three normal components,
     renormalised and 0 off the object, and the object mask as a fourth channel (1 where
-    the resampled mask is above one half). The crop keeps the image's orientation, so the normal components and
-    the tilt keep their meaning.
+    the resampled mask is above one half). The crop keeps the image's orientation, so the
+    normal components and the tilt keep their meaning.
 
     Raises:
         ValueError: a ``margin`` below 1 (the square would cut the object).
