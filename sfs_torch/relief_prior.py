@@ -17,9 +17,9 @@ transform that takes it back to the shape it most likely is. It is trained by
 perturbation of its slopes, to minimise the mean angle between the corrected field and
 the true one. ``tools/build_relief_prior.py`` builds the weights that ship with the
 package (``data/relief_prior.npz``); :func:`load_relief_net` loads them.
-:func:`predict_relief` averages the network over the eight symmetries of the square crop
-(mirrors, quarter turns), so a mirrored or turned field gets the mirrored or turned
-transform exactly.
+:func:`predict_relief` averages the network over three crops of the object (margins 1.0,
+1.1, 1.25) and the eight symmetries of each square crop (mirrors, quarter turns), so a
+mirrored or turned field gets the mirrored or turned transform exactly.
 """
 from __future__ import annotations
 
