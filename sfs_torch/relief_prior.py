@@ -108,8 +108,14 @@ def crop_to_object(normals: Tensor, mask: Tensor, size: int = RELIEF_CROP_SIZE,
     normal components and the tilt keep their meaning.
 
     Raises:
-        ValueError: a ``margin`` below 1 (the square would cut the object).
+        ValueError: wrong shapes or sizes, an empty mask, a ``size`` below 2, a ``margin``
+            below 1 (the square would cut the object).
     """
+    check_shape(normals, "normals", "B 3 H W")
+    check_same_size(normals, "normals", mask, "mask")
+    mask = check_mask(mask, allow_full=True)
+    if not is_integer(size, 2):
+        raise ValueError(f"size must be an integer >= 2, got {size!r}")
     if not is_number(margin, 1):
         raise ValueError(f"margin must be a finite number >= 1, got {margin!r}")
     crops = []

@@ -184,6 +184,23 @@ class TestCrop:
         with pytest.raises(ValueError, match="margin must be a finite number >= 1"):
             crop_to_object(normals[None], mask[None], margin=margin)
 
+    @pytest.mark.parametrize("change, message", [
+        (lambda n, m: (n[:, :2], m), "normals must have shape"),
+        (lambda n, m: (n, m[..., :30]), "same batch size and height/width"),
+        (lambda n, m: (n, torch.zeros_like(m)), "mask is empty"),
+        (lambda n, m: (n, m.float() * 2), "only 0 and 1"),
+    ])
+    def test_bad_inputs_are_one_clear_error(self, change, message):
+        normals, mask = sphere(40, radius=19.0)
+        with pytest.raises(ValueError, match=message):
+            crop_to_object(*change(normals[None], mask[None]))
+
+    @pytest.mark.parametrize("size", [1, 2.5, True])
+    def test_a_bad_size_is_one_clear_error(self, size):
+        normals, mask = sphere(40, radius=19.0)
+        with pytest.raises(ValueError, match="size must be an integer >= 2"):
+            crop_to_object(normals[None], mask[None], size=size)
+
 
 class TestTraining:
     def test_seeded_training_is_reproducible_and_learns_to_undo_the_transform(self, tmp_path):
