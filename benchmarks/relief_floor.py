@@ -62,6 +62,18 @@ def views(shape, args: argparse.Namespace, generator: torch.Generator):
         yield view.normals[None].float(), view.mask[None]
 
 
+def view_errors(truth: torch.Tensor, mask: torch.Tensor, transform: ReliefTransform, net, passes: int) -> dict:
+    """The median error (deg) of one view under each of :data:`COLUMNS`."""
+    def error(normals: torch.Tensor) -> float:
+        return float(normal_metrics(normals, truth, mask).median[0])
+
+    def corrected(normals: torch.Tensor) -> torch.Tensor:
+        return apply_relief(normals, mask, predict_relief(normals, mask, net, passes))
+
+    transformed = apply_relief(truth, mask, transform)
+    return dict(zip(COLUMNS, (error(transformed), error(corrected(transformed)), error(corrected(truth)))))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--side", choices=["validation", "test"], default="validation")
@@ -98,17 +110,8 @@ def main() -> None:
             transform = ReliefTransform((torch.randn(1, generator=generator) * args.log_scale_std).exp(),
                                         torch.randn(1, generator=generator) * args.tilt_std,
                                         torch.randn(1, generator=generator) * args.tilt_std)
-            transformed = apply_relief(truth, mask, transform)
-
-            def error(normals: torch.Tensor) -> float:
-                return float(normal_metrics(normals, truth, mask).median[0])
-
-            def corrected(normals: torch.Tensor) -> torch.Tensor:
-                return apply_relief(normals, mask, predict_relief(normals, mask, net, args.passes))
-
-            errors["transformed"].append(error(transformed))
-            errors["prior on transformed"].append(error(corrected(transformed)))
-            errors["prior on truth"].append(error(corrected(truth)))
+            for column, value in view_errors(truth, mask, transform, net, args.passes).items():
+                errors[column].append(value)
         rows.append({"shape": shape.name, **errors})
         print(f"{shape.name:<40}" + "".join(f"{summary(errors[c]):>24}" for c in COLUMNS), flush=True)
     overall = {c: [e for row in rows for e in row[c]] for c in COLUMNS}
