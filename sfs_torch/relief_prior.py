@@ -40,10 +40,12 @@ from .integrability import bas_relief_normals
 __all__ = [
     "ReliefTransform", "ReliefNet", "ReliefPrior", "crop_to_object", "predict_relief", "apply_relief",
     "compose_relief", "relief_depth", "load_relief_net", "save_relief_net", "fit_relief_net",
-    "relief_training_views", "mean_angle", "best_relief", "RELIEF_CROP_SIZE",
+    "relief_training_views", "mean_angle", "best_relief", "RELIEF_CROP_SIZE", "RELIEF_HIDDEN",
 ]
 
 RELIEF_CROP_SIZE = 64
+# the fully connected layer's width; the shipped weights record their own
+RELIEF_HIDDEN = 1024
 # the square crop's side over the object's larger bounding-box side: a margin of background
 CROP_MARGIN = 1.1
 # the margins predict_relief reads the network at and averages over (tuning images, docs/pipeline.md)
@@ -147,7 +149,7 @@ class ReliefNet(nn.Module):
     lies is the cue. The last layer starts at zero, so an untrained network is the identity.
     """
 
-    def __init__(self, hidden: int = 1024):
+    def __init__(self, hidden: int = RELIEF_HIDDEN):
         super().__init__()
         channels = [4, 32, 32, 64, 64, 128]
         layers = []
@@ -416,7 +418,7 @@ def best_relief(normals: Tensor, reference: Tensor, mask: Tensor, *, start: Opti
 
 def fit_relief_net(views: Tensor, *, epochs: int = 16, batch_size: int = 64, tilt_std: float = 0.4,
                    log_scale_std: float = 0.5, perturbation: float = 0.4, learning_rate: float = 2e-3,
-                   hidden: int = 1024, seed: int = 0, progress: Optional[Callable] = None) -> ReliefNet:
+                   hidden: int = RELIEF_HIDDEN, seed: int = 0, progress: Optional[Callable] = None) -> ReliefNet:
     """Train a :class:`ReliefNet` on true cropped normal maps (:func:`relief_training_views`), on the CPU.
 
     Each step draws a batch, mirrors it at random, perturbs its slopes smoothly
