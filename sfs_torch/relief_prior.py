@@ -120,23 +120,31 @@ def crop_to_object(normals: Tensor, mask: Tensor, size: int = RELIEF_CROP_SIZE,
         raise ValueError(f"size must be an integer >= 2, got {size!r}")
     if not is_number(margin, 1):
         raise ValueError(f"margin must be a finite number >= 1, got {margin!r}")
+    return _crops(normals, mask, size, (margin,))[0]
+
+
+def _crops(normals: Tensor, mask: Tensor, size: int, margins: Sequence[float]) -> Tensor:
+    """:func:`crop_to_object` at each of ``margins``, unchecked, each bounding box found once:
+    :math:`(B, 3, H, W), (B, 1, H, W)` bool -> :math:`(M, B, 4, size, size)`."""
+    height, width = mask.shape[-2:]
+    t = torch.linspace(-1, 1, size, dtype=torch.float64, device=normals.device)
     crops = []
     for b in range(normals.shape[0]):
         m = mask[b, 0]
         rows, cols = torch.nonzero(m, as_tuple=True)
         cy, cx = (rows.min() + rows.max()) / 2, (cols.min() + cols.max()) / 2
-        half = max(int(rows.max() - rows.min()), int(cols.max() - cols.min())) / 2 * margin + 1
-        height, width = m.shape
-        t = torch.linspace(-1, 1, size, dtype=torch.float64, device=normals.device)
-        gy = (cy + t * half) / max(height - 1, 1) * 2 - 1
-        gx = (cx + t * half) / max(width - 1, 1) * 2 - 1
-        grid = torch.stack(torch.meshgrid(gy, gx, indexing="ij")[::-1], -1)[None].float()
+        extent = max(int(rows.max() - rows.min()), int(cols.max() - cols.min()))
         fields = torch.cat([normals[b] * m, m[None].to(normals.dtype)])[None].float()
-        sampled = F.grid_sample(fields, grid, mode="bilinear", align_corners=True)[0]
-        inside = sampled[3] > 0.5
-        n = sampled[:3] / sampled[:3].norm(dim=0, keepdim=True).clamp_min(1e-6)
-        crops.append(torch.cat([n * inside, inside[None].float()]))
-    return torch.stack(crops)
+        for margin in margins:
+            half = extent / 2 * margin + 1
+            gy = (cy + t * half) / max(height - 1, 1) * 2 - 1
+            gx = (cx + t * half) / max(width - 1, 1) * 2 - 1
+            grid = torch.stack(torch.meshgrid(gy, gx, indexing="ij")[::-1], -1)[None].float()
+            sampled = F.grid_sample(fields, grid, mode="bilinear", align_corners=True)[0]
+            inside = sampled[3] > 0.5
+            n = sampled[:3] / sampled[:3].norm(dim=0, keepdim=True).clamp_min(1e-6)
+            crops.append(torch.cat([n * inside, inside[None].float()]))
+    return torch.stack(crops).unflatten(0, (normals.shape[0], len(margins))).transpose(0, 1)
 
 
 class ReliefNet(nn.Module):
@@ -246,8 +254,7 @@ def predict_relief(normals: Tensor, mask: Tensor, net: ReliefNet, passes: int = 
     try:
         with torch.no_grad():
             for _ in range(passes):
-                crops = torch.stack([crop_to_object(current, mask, margin=m) for m in _READ_MARGINS])
-                step = _network_transform(net, crops.to(device))
+                step = _network_transform(net, _crops(current, mask, RELIEF_CROP_SIZE, _READ_MARGINS).to(device))
                 step = ReliefTransform(*(x.to(normals.device) for x in (step.scale, step.tilt_x, step.tilt_y)))
                 current = apply_relief(current, mask, step)
                 total = compose_relief(total, step)
