@@ -283,7 +283,10 @@ class Estimate:
             photometric refinement's surface model (by default with an estimated
             lighting; ``refine.model=surface`` with a given one), else ``None``.
         mask: :math:`(B, 1, H, W)` the object mask used.
-        timings: seconds spent per stage, summed over the batch.
+        timings: seconds spent per stage, summed over the batch. Stages nest: ``final
+            round`` (and ``relief rounds``) include their own ``lighting refinement``,
+            ``shade database + features`` and ``train forest``, which count in those
+            stages' totals too, so the values do not sum to the call's time.
     """
 
     normals: Tensor

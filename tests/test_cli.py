@@ -39,6 +39,20 @@ def write_sphere(tmp_path, size=48, radius=18.0):
     return mask
 
 
+def test_time_per_call_is_the_call_not_the_sum_of_nested_stages(tmp_path):
+    from sfs_torch.cli import _finish
+    from sfs_torch.pipeline import Estimate
+
+    normals, mask = sphere(32, 12.0)
+    image = render_sh(normals[None], natural_lightings(0.7)["uffizi_gallery"][None])[0] * mask
+    est = Estimate(normals=normals, confidence=mask.float(), lighting=natural_lightings(0.7)["uffizi_gallery"],
+                   depth=None, mask=mask,
+                   timings={"database": 4.0, "lighting": 0.5, "final round": 2.0, "train forest": 1.5})
+    numbers = _finish(tmp_path, est, 6.75, image, mask, "t", None, None)
+    assert numbers["time per call (s)"] == 2.75  # the call's 6.75 s less the database's one-off 4 s
+    assert numbers["time train forest (s)"] == 1.5 and (tmp_path / "summary.png").is_file()
+
+
 class TestCLI:
     def test_demo_writes_everything(self, tmp_path):
         result = run_cli([*TINY, "demo.shape=0", "demo.resolution=48", f"out={tmp_path / 'demo'}"], tmp_path)
@@ -49,6 +63,7 @@ class TestCLI:
         numbers = json.loads((out / "metrics.json").read_text())
         # the full method must beat the silhouette-only coarse normal on the demo shape
         assert numbers["median error (deg)"] < numbers["silhouette-only median (deg)"]
+        assert numbers["time final round (s)"] <= numbers["time per call (s)"]
         normals = np.load(out / "normals.npy")
         assert normals.shape == (48, 48, 3) and normals.dtype == np.float32
 
