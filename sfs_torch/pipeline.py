@@ -19,13 +19,14 @@
    fitted to the image, per pixel under a given lighting, and an estimated lighting
    refined jointly with an integrable surface (``refine.when``, default ``"always"``),
    then once more from an unjittered forest trained for the refined lighting
-   (``final_round``), and an estimated orthographic surface corrected by the bas-relief
-   transform a learnt prior on shapes in their poses reads off it
-   (:mod:`sfs_torch.relief_prior`, ``relief_prior_passes``, not in the paper; optionally
-   first deepened by a factor, ``relief_scale``, ``relief_slope_power``; optionally a
-   second such round from the corrected surface, the two surfaces averaged, ``relief_rounds``;
-   optionally the joint refinement again from the corrected surface and the prior after it,
-   ``relief_refinements``);
+   (``final_round``), and an estimated surface corrected by the bas-relief transform a
+   learnt prior on shapes in their poses reads off it (:mod:`sfs_torch.relief_prior`,
+   ``relief_prior_passes``, not in the paper; a perspective one in its centroid's frame,
+   refined again and kept where it explains the image at least as well; optionally
+   first deepened by a factor, ``relief_scale``, ``relief_slope_power``; orthographic
+   only, optionally a second such round from the corrected surface, the two surfaces
+   averaged, ``relief_rounds``, and the joint refinement again from the corrected surface
+   and the prior after it, ``relief_refinements``);
 7. optional integrability refinement (:mod:`sfs_torch.integrability`).
 """
 from __future__ import annotations
@@ -188,8 +189,8 @@ class PipelineConfig:
             brightness/colour jitter, and the joint refinement again from that forest's
             normals, whose surface, lighting and confidence are returned (one more forest
             and refinement; measured in docs/pipeline.md).
-        relief_scale: with an estimated lighting and an orthographic camera, after the
-            joint refinement (and ``final_round``): the refined surface's depth is multiplied
+        relief_scale: with an estimated lighting, after the joint refinement (and
+            ``final_round``): the refined surface's depth is multiplied
             by a factor, ``relief_scale`` for a surface of median slope 0.8 (below), a
             bas-relief transform (its normals ``(s n_x, s n_y, n_z)`` normalised, the
             lighting refitted to them), which changes the image's shading only through an
@@ -209,9 +210,12 @@ class PipelineConfig:
             of the learnt prior on shapes in their poses (:mod:`sfs_torch.relief_prior`)
             correct the surface by a bas-relief transform, scale and tilt, that it reads
             off the normal field (the lighting refitted once to the result); 0 leaves it
-            off. Measured in docs/pipeline.md.
+            off. A perspective surface is corrected in its centroid's frame, then refined
+            jointly from there, and kept only where that explains the image at least as well
+            as the surface before it (:func:`sfs_torch.refine.photometric_residual`): a
+            perspective image tells transforms apart. Measured in docs/pipeline.md.
         relief_refinements: after the learnt prior and the prior check after it, on the
-            images the relief stage corrected and the check did not return to the prior:
+            orthographic images the relief stage corrected and the check did not return to the prior:
             how many times the joint refinement runs again from the corrected surface
             (pulled towards its normals by the final round's confidence, its lighting
             fitted with it) and the prior corrects the result again. The prior fixes the
@@ -221,7 +225,7 @@ class PipelineConfig:
             validation shapes, not those of the other three, and was about even on the test
             side (docs/pipeline.md).
         relief_rounds: how many surfaces the relief stage (``relief_scale`` and
-            ``relief_prior_passes``) averages. Each round after the first starts from the
+            ``relief_prior_passes``) averages, orthographic images only. Each round after the first starts from the
             previous round's corrected surface: the lighting refitted to it, the final
             round's unjittered forest and refinement, then the learnt prior again (the
             relief scale deepens the first round's surface only). The estimate is the mean
@@ -728,11 +732,15 @@ def estimate(
                                                                per_image, db, timer, focal, principal_point)
         relief = cfg.relief_scale != 1 or cfg.relief_slope_power != 0 or cfg.relief_prior_passes > 0
         corrected = torch.zeros_like(skip)  # the images the relief stage corrects
-        if relief and not given and focal is None and depth is not None:
+        if relief and not given and depth is not None:
             corrected = ~skip
             with timer("relief scale and prior"):
-                depth, normals, sh = _scaled_relief(image_b, mask_b, depth, normals, sh, corrected, cfg)
-            if cfg.relief_rounds > 1:
+                if focal is None:
+                    depth, normals, sh = _scaled_relief(image_b, mask_b, depth, normals, sh, corrected, cfg)
+                else:
+                    depth, normals, sh, corrected = _perspective_relief(
+                        image_b, mask_b, (depth, normals, sh, confidence), corrected, cfg, focal, principal_point)
+            if cfg.relief_rounds > 1 and focal is None:
                 with timer("relief rounds"):
                     depth, normals, sh = _relief_rounds(image_b, mask_b, (depth, normals, sh, confidence), corrected,
                                                         per_image, db, cfg, timer)
@@ -748,7 +756,7 @@ def estimate(
                         candidates = [normals[b : b + 1].clone() if back[b] else c for b, c in enumerate(candidates)]
         # after the check, which weighs the prior against the surface as the prior corrected it: refined
         # again, a wrong surface fits the image better, and before the check it beat spheres' exact prior
-        if cfg.relief_refinements > 0 and bool(corrected.any()):
+        if cfg.relief_refinements > 0 and focal is None and bool(corrected.any()):
             with timer("refinement after the relief prior"):
                 depth, normals, sh = _refined_relief(image_b, mask_b, (depth, normals, sh, confidence), corrected, cfg)
     if integrate != "none":
@@ -822,26 +830,61 @@ def _final_rounds(image: Tensor, mask: Tensor, surface: tuple, among: Tensor, pe
     return out
 
 
+def _relief_transform(normals: Tensor, mask: Tensor, cfg: PipelineConfig) -> ReliefTransform:
+    """The transform of each orthographic normal field (B, 3, H, W): its :func:`_relief_factor`,
+    then ``cfg.relief_prior_passes`` passes of the learnt relief prior."""
+    scale = torch.tensor([_relief_factor(n, m, cfg) for n, m in zip(normals, mask)], device=normals.device)
+    transform = ReliefTransform(scale, torch.zeros_like(scale), torch.zeros_like(scale))
+    if cfg.relief_prior_passes > 0:
+        net = load_relief_net(cfg.relief_prior_weights, device=normals.device)
+        learnt = predict_relief(apply_relief(normals, mask, transform), mask, net, cfg.relief_prior_passes)
+        transform = compose_relief(transform, learnt)
+    return transform
+
+
 def _scaled_relief(image: Tensor, mask: Tensor, depth: Tensor, normals: Tensor, sh: Tensor, among: Tensor,
                    cfg: PipelineConfig) -> tuple:
     """``(depth, normals, lighting)`` with the orthographic surfaces of the images in
-    ``among`` (B,) bool deepened by their :func:`_relief_factor`, then corrected by
-    ``cfg.relief_prior_passes`` passes of the learnt relief prior, their lighting refitted."""
+    ``among`` (B,) bool corrected by their :func:`_relief_transform`, their lighting refitted."""
     items = among.nonzero()[:, 0]
     if len(items) == 0:
         return depth, normals, sh
     depth, normals, sh = depth.clone(), normals.clone(), sh.clone()
     m = mask[items]
-    scale = torch.tensor([_relief_factor(normals[b], mask[b], cfg) for b in items.tolist()], device=normals.device)
-    transform = ReliefTransform(scale, torch.zeros_like(scale), torch.zeros_like(scale))
-    if cfg.relief_prior_passes > 0:
-        net = load_relief_net(cfg.relief_prior_weights, device=normals.device)
-        learnt = predict_relief(apply_relief(normals[items], m, transform), m, net, cfg.relief_prior_passes)
-        transform = compose_relief(transform, learnt)
+    transform = _relief_transform(normals[items], m, cfg)
     normals[items] = apply_relief(normals[items], m, transform).to(normals.dtype)
     depth[items] = relief_depth(depth[items], m, transform).to(depth.dtype)
     sh[items] = refit_lighting(image[items], m, normals[items], valid=cfg.valid_refit).to(sh.dtype)
     return depth, normals, sh
+
+
+def _perspective_relief(image: Tensor, mask: Tensor, surface: tuple, among: Tensor, cfg: PipelineConfig,
+                        focal: float, principal_point: Optional[tuple]) -> tuple:
+    """``(depth, normals, lighting, corrected)`` of the batch whose ``surface`` is the final
+    round's ``(depth, normals, lighting, confidence)``, its perspective images in ``among`` (B,)
+    bool corrected by their :func:`_relief_transform` in their centroid's frame (where the
+    object is seen about as an orthographic one is), refined jointly from there, and kept
+    where that surface explains the image at least as well as the one before it
+    (``corrected`` (B,) bool: those kept). Unlike an orthographic one, a perspective image
+    tells bas-relief transforms apart, so it may refuse the prior's."""
+    depth, normals, sh, confidence = surface
+    items = among.nonzero()[:, 0]
+    if len(items) == 0:
+        return depth, normals, sh, among
+    m = mask[items]
+    rotation = centroid_rotation(m, focal, principal_point).to(normals.dtype)
+    local = torch.einsum("bji,bjhw->bihw", rotation, normals[items])
+    turned = torch.einsum("bij,bjhw->bihw", rotation, apply_relief(local, m, _relief_transform(local, m, cfg)))
+    start = refit_lighting(image[items], m, turned, valid=cfg.valid_refit).to(sh.dtype)
+    refined = _refine(image[items], m, turned.to(normals.dtype), start, confidence[items],
+                      torch.zeros_like(items, dtype=torch.bool), cfg, False, focal, principal_point)
+    keep = (photometric_residual(refined[1], refined[2], image[items], m)
+            <= photometric_residual(normals[items], sh[items], image[items], m))
+    depth, normals, sh, corrected = depth.clone(), normals.clone(), sh.clone(), torch.zeros_like(among)
+    for x, y in zip((depth, normals, sh), refined):
+        x[items[keep]] = y[keep].to(x.dtype)
+    corrected[items[keep]] = True
+    return depth, normals, sh, corrected
 
 
 def _prior_alone(cfg: PipelineConfig) -> PipelineConfig:

@@ -20,6 +20,11 @@ package (``data/relief_prior.npz``); :func:`load_relief_net` loads them.
 :func:`predict_relief` averages the network over three crops of the object (margins 1.0,
 1.1, 1.25) and the eight symmetries of each square crop (mirrors, quarter turns), so a
 mirrored or turned field gets the mirrored or turned transform exactly.
+
+The pipeline (:func:`sfs_torch.pipeline.estimate`) also corrects perspective estimates,
+read in the object's centroid frame, where the object is seen about as an orthographic one
+is. There the image does tell transforms apart, so the corrected surface is refined again
+and kept only where it explains the image at least as well.
 """
 from __future__ import annotations
 

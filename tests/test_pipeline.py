@@ -11,6 +11,7 @@ import sfs_torch
 from sfs_torch.lighting import natural_lightings, render_sh
 from sfs_torch.metrics import lmse, normal_metrics
 from sfs_torch import pipeline
+from sfs_torch.camera import centroid_rotation
 from sfs_torch.integrability import depth_to_normals
 from sfs_torch.pipeline import PipelineConfig, resolve_config, training_set
 from sfs_torch.reflectance_map import refit_lighting
@@ -471,10 +472,47 @@ class TestReliefScale:
         torch.testing.assert_close(other.normals, scaled.normals)
         torch.testing.assert_close(other.depth, scaled.depth)
 
-    @pytest.mark.parametrize("case", ["known lighting", "perspective", "kept prior"])
+    @pytest.mark.parametrize("explains_better", [True, False], ids=["kept", "refused"])
+    def test_a_perspective_surface_is_corrected_in_its_centroids_frame_and_refined(self, scene, monkeypatch,
+                                                                                   explains_better):
+        _, mask, _, image = scene
+        camera = {"focal": 60.0, "principal_point": (12.0, 20.0)}  # the object well off the optical axis
+        config = dict(TINY, keep_prior=False)
+        before = sfs_torch.estimate(image, mask, config=dict(config, **NO_RELIEF), progress=False, **camera)
+        refinements = []
+        refine, residual = pipeline.refine_shape_and_lighting, pipeline.photometric_residual
+
+        def recording_refine(*args, **kwargs):
+            refinements.append((args, refine(*args, **kwargs)))
+            return refinements[-1][1]
+
+        def judged(normals, *args):  # once the relief stage has refined: its surface explains the image better or worse
+            if len(refinements) < 3:
+                return residual(normals, *args)
+            return torch.full(normals.shape[:1], float(torch.equal(normals, refinements[-1][1].normals) != explains_better))
+
+        monkeypatch.setattr(pipeline, "refine_shape_and_lighting", recording_refine)
+        monkeypatch.setattr(pipeline, "photometric_residual", judged)
+        after = sfs_torch.estimate(image, mask, config=config, progress=False, **camera)
+        assert len(refinements) == 3  # the joint refinement, the final round's, and the relief stage's
+        (_, _, start_normals, start_sh), last = refinements[-1]
+        rotation = centroid_rotation(mask, **camera)
+        assert float(torch.linalg.matrix_norm(rotation - torch.eye(3))) > 0.3
+        local = torch.einsum("ji,jhw->ihw", rotation, before.normals)  # the centroid's frame
+        learnt = predict_relief(local, mask, load_relief_net(), passes=2)
+        turned = torch.einsum("ij,bjhw->bihw", rotation, apply_relief(local[None], mask[None], learnt))
+        torch.testing.assert_close(start_normals, turned)
+        torch.testing.assert_close(start_sh, refit_lighting(image[None], mask[None], turned))
+        assert float(normal_metrics(last.normals, before.normals[None], mask[None]).median[0]) > 0.1
+        kept = (last.normals[0], last.depth[0], last.lighting[0]) if explains_better else (
+            before.normals, before.depth, before.lighting)
+        for got, expected in zip((after.normals, after.depth, after.lighting), kept):
+            torch.testing.assert_close(got, expected)
+
+    @pytest.mark.parametrize("case", ["known lighting", "kept prior"])
     def test_left_alone(self, scene, case):
         _, mask, sh, image = scene
-        kwargs = {"known lighting": {"lighting": sh}, "perspective": {"focal": 300.0}, "kept prior": {}}[case]
+        kwargs = {"known lighting": {"lighting": sh}, "kept prior": {}}[case]
         # the sphere's silhouette prior is kept (TestKeepPrior), so nothing is deepened
         config = dict(TINY, keep_prior=case == "kept prior")
         flat = sfs_torch.estimate(image, mask, config=dict(config, **NO_RELIEF), progress=False, **kwargs)
