@@ -215,8 +215,8 @@ class PipelineConfig:
             as the surface before it (:func:`sfs_torch.refine.photometric_residual`): a
             perspective image tells transforms apart. Measured in docs/pipeline.md.
         relief_refinements: after the learnt prior and the prior check after it, on the
-            orthographic images the relief stage corrected and the check did not return to the prior:
-            how many times the joint refinement runs again from the corrected surface
+            orthographic images the relief stage corrected and the check did not return to
+            the prior: how many times the joint refinement runs again from the corrected surface
             (pulled towards its normals by the final round's confidence, its lighting
             fitted with it) and the prior corrects the result again. The prior fixes the
             bas-relief transform the refinement cannot see; from the corrected surface the
@@ -225,8 +225,8 @@ class PipelineConfig:
             validation shapes, not those of the other three, and was about even on the test
             side (docs/pipeline.md).
         relief_rounds: how many surfaces the relief stage (``relief_scale`` and
-            ``relief_prior_passes``) averages, orthographic images only. Each round after the first starts from the
-            previous round's corrected surface: the lighting refitted to it, the final
+            ``relief_prior_passes``) averages, orthographic images only. Each round after
+            the first starts from the previous round's corrected surface: the lighting refitted to it, the final
             round's unjittered forest and refinement, then the learnt prior again (the
             relief scale deepens the first round's surface only). The estimate is the mean
             of the rounds' surfaces (their depths; the normals of their mean slopes), its
