@@ -509,6 +509,32 @@ class TestReliefScale:
         for got, expected in zip((after.normals, after.depth, after.lighting), kept):
             torch.testing.assert_close(got, expected)
 
+    def test_each_perspective_image_of_a_batch_keeps_or_refuses_its_own_correction(self, scene, monkeypatch):
+        _, mask, _, image = scene
+        images, masks = torch.stack([image, image.flip(-1)]), torch.stack([mask, mask.flip(-1)])
+        config = dict(TINY, keep_prior=False)
+        before = sfs_torch.estimate(images, masks, focal=60.0, config=dict(config, **NO_RELIEF), progress=False)
+        stage, residual, calls = pipeline._perspective_relief, pipeline.photometric_residual, []
+
+        def in_stage(*args):
+            calls.append("stage")
+            return stage(*args)
+
+        def judged(normals, *args):  # the stage asks for the refined surfaces' residuals, then those before
+            if calls != ["stage"] and calls != ["stage", "refined"]:
+                return residual(normals, *args)
+            calls.append("refined")
+            return torch.tensor([0.0, 1.0]) if len(calls) == 2 else torch.tensor([0.5, 0.5])
+
+        monkeypatch.setattr(pipeline, "_perspective_relief", in_stage)
+        monkeypatch.setattr(pipeline, "photometric_residual", judged)
+        after = sfs_torch.estimate(images, masks, focal=60.0, config=config, progress=False)
+        assert len(calls) == 3
+        assert float(normal_metrics(after.normals[:1], before.normals[:1], masks[:1]).median[0]) > 0.1  # kept
+        for got, expected in zip((after.normals, after.depth, after.lighting), (before.normals, before.depth,
+                                                                                 before.lighting)):
+            torch.testing.assert_close(got[1], expected[1])  # refused: the surface before the stage
+
     @pytest.mark.parametrize("case", ["known lighting", "kept prior"])
     def test_left_alone(self, scene, case):
         _, mask, sh, image = scene
