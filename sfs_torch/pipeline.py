@@ -216,8 +216,8 @@ class PipelineConfig:
             perspective image tells transforms apart. Measured in docs/pipeline.md.
         relief_refinements: after the learnt prior and the prior check after it, on the
             orthographic images the relief stage corrected and the check did not return to
-            the prior: how many times the joint refinement runs again from the corrected surface
-            (pulled towards its normals by the final round's confidence, its lighting
+            the prior: how many times the joint refinement runs again from the corrected
+            surface (pulled towards its normals by the final round's confidence, its lighting
             fitted with it) and the prior corrects the result again. The prior fixes the
             bas-relief transform the refinement cannot see; from the corrected surface the
             refinement can fix some of what is left. 0 (the default) keeps the prior's
@@ -226,8 +226,9 @@ class PipelineConfig:
             side (docs/pipeline.md).
         relief_rounds: how many surfaces the relief stage (``relief_scale`` and
             ``relief_prior_passes``) averages, orthographic images only. Each round after
-            the first starts from the previous round's corrected surface: the lighting refitted to it, the final
-            round's unjittered forest and refinement, then the learnt prior again (the
+            the first starts from the previous round's corrected surface: the lighting
+            refitted to it, the final round's unjittered forest and refinement, then the
+            learnt prior again (the
             relief scale deepens the first round's surface only). The estimate is the mean
             of the rounds' surfaces (their depths; the normals of their mean slopes), its
             lighting refitted, its confidence the first round's. 1 (the default) keeps the

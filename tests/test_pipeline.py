@@ -410,6 +410,26 @@ class TestFinalRound:
         torch.testing.assert_close(off.normals, refinements[0].normals[0])
 
 
+def _judged_perspective_relief(monkeypatch, refined: torch.Tensor, before: torch.Tensor) -> list:
+    """Make the perspective relief stage read these photometric residuals, ``(B,)`` each, of
+    its refined surfaces and of the surfaces before it; returns the record of its calls."""
+    stage, residual, calls = pipeline._perspective_relief, pipeline.photometric_residual, []
+
+    def in_stage(*args):
+        calls.append("stage")
+        return stage(*args)
+
+    def judged(normals, *args):  # the stage asks for its refined surfaces' residuals, then for those before
+        if calls not in (["stage"], ["stage", "refined"]):
+            return residual(normals, *args)
+        calls.append("before" if "refined" in calls else "refined")
+        return before if calls[-1] == "before" else refined
+
+    monkeypatch.setattr(pipeline, "_perspective_relief", in_stage)
+    monkeypatch.setattr(pipeline, "photometric_residual", judged)
+    return calls
+
+
 class TestReliefScale:
     def test_an_estimated_orthographic_surface_is_deepened_and_its_lighting_refitted(self, scene):
         _, mask, _, image = scene
@@ -480,21 +500,17 @@ class TestReliefScale:
         config = dict(TINY, keep_prior=False)
         before = sfs_torch.estimate(image, mask, config=dict(config, **NO_RELIEF), progress=False, **camera)
         refinements = []
-        refine, residual = pipeline.refine_shape_and_lighting, pipeline.photometric_residual
+        refine = pipeline.refine_shape_and_lighting
 
         def recording_refine(*args, **kwargs):
             refinements.append((args, refine(*args, **kwargs)))
             return refinements[-1][1]
 
-        def judged(normals, *args):  # once the relief stage has refined: its surface explains the image better or worse
-            if len(refinements) < 3:
-                return residual(normals, *args)
-            return torch.full(normals.shape[:1], float(torch.equal(normals, refinements[-1][1].normals) != explains_better))
-
         monkeypatch.setattr(pipeline, "refine_shape_and_lighting", recording_refine)
-        monkeypatch.setattr(pipeline, "photometric_residual", judged)
+        calls = _judged_perspective_relief(monkeypatch, torch.tensor([0.0 if explains_better else 1.0]),
+                                           torch.tensor([0.5]))
         after = sfs_torch.estimate(image, mask, config=config, progress=False, **camera)
-        assert len(refinements) == 3  # the joint refinement, the final round's, and the relief stage's
+        assert len(refinements) == 3 and calls == ["stage", "refined", "before"]  # the last is the stage's
         (_, _, start_normals, start_sh), last = refinements[-1]
         rotation = centroid_rotation(mask, **camera)
         assert float(torch.linalg.matrix_norm(rotation - torch.eye(3))) > 0.3
@@ -514,22 +530,9 @@ class TestReliefScale:
         images, masks = torch.stack([image, image.flip(-1)]), torch.stack([mask, mask.flip(-1)])
         config = dict(TINY, keep_prior=False)
         before = sfs_torch.estimate(images, masks, focal=60.0, config=dict(config, **NO_RELIEF), progress=False)
-        stage, residual, calls = pipeline._perspective_relief, pipeline.photometric_residual, []
-
-        def in_stage(*args):
-            calls.append("stage")
-            return stage(*args)
-
-        def judged(normals, *args):  # the stage asks for the refined surfaces' residuals, then those before
-            if calls != ["stage"] and calls != ["stage", "refined"]:
-                return residual(normals, *args)
-            calls.append("refined")
-            return torch.tensor([0.0, 1.0]) if len(calls) == 2 else torch.tensor([0.5, 0.5])
-
-        monkeypatch.setattr(pipeline, "_perspective_relief", in_stage)
-        monkeypatch.setattr(pipeline, "photometric_residual", judged)
+        calls = _judged_perspective_relief(monkeypatch, torch.tensor([0.0, 1.0]), torch.tensor([0.5, 0.5]))
         after = sfs_torch.estimate(images, masks, focal=60.0, config=config, progress=False)
-        assert len(calls) == 3
+        assert calls == ["stage", "refined", "before"]
         assert float(normal_metrics(after.normals[:1], before.normals[:1], masks[:1]).median[0]) > 0.1  # kept
         for got, expected in zip((after.normals, after.depth, after.lighting), (before.normals, before.depth,
                                                                                  before.lighting)):
