@@ -184,6 +184,16 @@ class PipelineConfig:
             by more than 95 % of the other pixels fall below it, count as a specular
             highlight, at a fixed cost whatever the normals (``free_lighting_residual``'s
             ``highlight``); ``None`` scores them like the others.
+        prior_check_tie: in that check, on perspective images, a near tie: where the
+            refined surface's score is at least this fraction of the prior's (it explains
+            the image less than ``1 / prior_check_tie`` times better), the prior is refined
+            the same way (from Eq. 10's normals and their refitted lighting) and returned if
+            that surface explains the image better than the refined one. The refinement
+            fits a surface to the image, highlights included, which the unrefined prior
+            cannot: in perspective a refined sphere out-scored even its true normals.
+            Orthographic images are left out: there the rule took one bone back to its
+            prior and no sphere (docs/pipeline.md). One more joint refinement for each
+            near tie; ``None``: never.
         final_round: with an estimated lighting, after the joint refinement: the
             lighting refitted to the refined normals, a forest trained for it without the
             brightness/colour jitter, and the joint refinement again from that forest's
@@ -262,6 +272,7 @@ class PipelineConfig:
     valid_refit: bool = True
     keep_prior: bool = True
     prior_check_highlight: Optional[float] = 0.1
+    prior_check_tie: Optional[float] = 0.5
     final_round: bool = True
     relief_scale: float = 1.0
     relief_slope_power: float = 0.0
@@ -437,6 +448,9 @@ def _check_config(cfg: PipelineConfig) -> None:
     highlight = cfg.prior_check_highlight
     if highlight is not None and not is_number(highlight, 0, strict=True):
         raise ValueError(f"prior_check_highlight must be a number > 0 or null, got {highlight!r}")
+    tie = cfg.prior_check_tie
+    if tie is not None and not (is_number(tie, 0, strict=True) and tie <= 1):
+        raise ValueError(f"prior_check_tie must be a number in (0, 1] or null, got {tie!r}")
     if not is_integer(cfg.conv_samples_per_tree, 1):
         raise ValueError(f"conv_samples_per_tree must be an integer >= 1, got {cfg.conv_samples_per_tree!r}")
 
@@ -747,8 +761,7 @@ def estimate(
                                                         per_image, db, cfg, timer)
         if cfg.keep_prior and not given and depth is not None:
             with timer("prior check after refinement"):
-                back = _prior_explains_better(image_b, mask_b, normals, ~skip, focal, principal_point, cfg.silhouette,
-                                              cfg.prior_check_highlight)
+                back = _prior_explains_better(image_b, mask_b, normals, ~skip, focal, principal_point, cfg)
                 corrected &= ~back
                 if bool(back.any()):
                     depth, normals, sh = _back_to_prior(image_b, mask_b, depth, normals, sh, confidence, back, cfg,
@@ -959,32 +972,53 @@ FREE_FIT_MAX_CLIPPED = 0.25
 
 
 def _prior_explains_better(image: Tensor, mask: Tensor, normals: Tensor, among: Tensor, focal: Optional[float],
-                           principal_point: Optional[tuple], silhouette: SilhouetteConfig,
-                           highlight: Optional[float]) -> Tensor:
+                           principal_point: Optional[tuple], cfg: PipelineConfig) -> Tensor:
     """``(B,)`` bool: of the images in ``among`` (B,) bool, those that Eq. 10's coarse
     normals explain better than ``normals``, each field under its own best smooth shading
-    (:func:`~sfs_torch.refine.free_lighting_residual`).
+    (:func:`~sfs_torch.refine.free_lighting_residual`), or, in a perspective near tie
+    (``cfg.prior_check_tie``), that Eq. 10's normals refined like ``normals`` explain better.
 
     Asked after the joint refinement, so both fields are smooth and integrable. Under a
     strong sun no 9-term lighting shades even the true normals like the image, so the prior
     check before the refinement (9-term lightings) can prefer a forest's normals, trained
     for the refit, that bend to fit it. Only for images with at most
     ``FREE_FIT_MAX_CLIPPED`` of the object's pixels clipped at 0 or 1: the shading is
-    fitted to the others and unbounded on them. ``highlight`` is ``free_lighting_residual``'s:
-    a surface bent to reproduce a specular highlight gains at most the threshold's penalty
-    on each of its pixels.
+    fitted to the others and unbounded on them. ``cfg.prior_check_highlight`` is
+    ``free_lighting_residual``'s ``highlight``: a surface bent to reproduce a specular
+    highlight gains at most the threshold's penalty on each of its pixels.
     """
     clipped = (mask & ~_unclipped_pixels(image, mask)).flatten(1).sum(1)
     items = (among & (clipped <= FREE_FIT_MAX_CLIPPED * mask.flatten(1).sum(1))).nonzero()[:, 0]
     better = torch.zeros_like(among)
     if len(items) > 0:
         image, mask, normals = image[items], mask[items], normals[items]
-        coarse = coarse_normals(mask, focal=focal, principal_point=principal_point, config=silhouette).to(normals.dtype)
-        better[items] = (free_lighting_residual(coarse, image, mask, highlight=highlight)
-                         < free_lighting_residual(normals, image, mask, highlight=highlight))
+        coarse = coarse_normals(mask, focal=focal, principal_point=principal_point, config=cfg.silhouette).to(normals.dtype)
+        score = free_lighting_residual(normals, image, mask, highlight=cfg.prior_check_highlight)
+        prior = free_lighting_residual(coarse, image, mask, highlight=cfg.prior_check_highlight)
+        better[items] = prior < score
+        if cfg.prior_check_tie is not None and focal is not None:
+            tied = (prior >= score) & (score >= cfg.prior_check_tie * prior)
+            if bool(tied.any()):
+                better[items[tied]] = _refined_prior_explains_better(image[tied], mask[tied], coarse[tied], score[tied],
+                                                                     cfg, focal, principal_point)
     for b in better.nonzero()[:, 0].tolist():
         log.info("image %d: the silhouette prior explains it better than the refined surface under a free smooth "
                  "shading; keeping the prior", b)
+    return better
+
+
+def _refined_prior_explains_better(image: Tensor, mask: Tensor, coarse: Tensor, score: Tensor, cfg: PipelineConfig,
+                                   focal: Optional[float], principal_point: Optional[tuple]) -> Tensor:
+    """``(N,)`` bool: whether Eq. 10's normals ``coarse`` (N, 3, H, W), refined from their
+    own refitted lighting like the surface they are weighed against (the prior's
+    confidence uniform), explain the images better than that surface's ``score`` (N,)."""
+    sh = refit_lighting(image, mask, coarse, valid=cfg.valid_refit)
+    none_skipped = torch.zeros(len(image), dtype=torch.bool, device=image.device)
+    _, refined, _ = _refine(image, mask, coarse, sh, mask.to(image.dtype), none_skipped, cfg, False, focal,
+                            principal_point)
+    better = free_lighting_residual(refined, image, mask, highlight=cfg.prior_check_highlight) < score
+    log.info("near ties with the silhouette prior: its refined surface explains %d of %d better", int(better.sum()),
+             len(better))
     return better
 
 

@@ -96,12 +96,13 @@ class TestConfigs:
 
     def test_pipeline_options_are_top_level_keys(self):
         overrides = ["refine_rounds=0", "valid_refit=false", "keep_prior=false", "prior_check_highlight=null",
-                     "normal_rotation=pixel", "conv_samples_per_tree=3"]
+                     "prior_check_tie=0.8", "normal_rotation=pixel", "conv_samples_per_tree=3"]
         pipeline = _pipeline_config(compose_app(overrides))
         assert (pipeline.refine_rounds, pipeline.valid_refit, pipeline.keep_prior, pipeline.prior_check_highlight,
-                pipeline.normal_rotation, pipeline.conv_samples_per_tree) == (0, False, False, None, "pixel", 3)
+                pipeline.prior_check_tie, pipeline.normal_rotation,
+                pipeline.conv_samples_per_tree) == (0, False, False, None, 0.8, "pixel", 3)
         assert replace(pipeline, refine_rounds=1, valid_refit=True, keep_prior=True, prior_check_highlight=0.1,
-                       normal_rotation="centroid", conv_samples_per_tree=1) == PipelineConfig()
+                       prior_check_tie=0.5, normal_rotation="centroid", conv_samples_per_tree=1) == PipelineConfig()
 
     def test_values_inside_a_group(self):
         cfg = compose_app(["silhouette.prune_angle=45", "silhouette.gradient_sigma=0", "forest.n_trees=3",

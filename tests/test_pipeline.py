@@ -301,7 +301,7 @@ class TestKeepPrior:
         highlights = []
 
         def prior_wins(*args):
-            highlights.append(args[-1])
+            highlights.append(args[-1].prior_check_highlight)
             return torch.ones_like(args[3])
 
         monkeypatch.setattr(pipeline, "_prior_explains_better", prior_wins)
@@ -370,6 +370,66 @@ class TestKeepPrior:
         est = sfs_torch.estimate(image, mask, lighting=sh, progress=False,
                                  config=dict(TINY, keep_prior=True, refine={"when": "never"}))
         assert torch.equal(est.lighting, sh)
+
+
+@pytest.fixture(scope="module")
+def ellipsoid():
+    """An ellipsoid's normals, mask and exact image, each with a batch axis: Eq. 10 is off on it."""
+    c = torch.arange(64, dtype=torch.float32) + 0.5 - 32
+    yy, xx = torch.meshgrid(c, c, indexing="ij")
+    x, y = xx / 26.0, -yy / 16.0
+    r2 = x * x + y * y
+    mask = (r2 < 1)[None]
+    truth = torch.nn.functional.normalize(torch.stack([20 * x / 26, 20 * y / 16, torch.sqrt((1 - r2).clamp_min(0))]),
+                                          dim=0) * mask
+    sh = natural_lightings(0.7)["grace_cathedral"]
+    image = (render_sh(truth[None], sh[None])[0] * mask).clamp(0, 1)
+    return truth[None], mask[None], image[None]
+
+
+class TestPriorCheckTie:
+    """The near-tie rule of the prior check after the refinement (``prior_check_tie``), on
+    an ellipsoid whose Eq. 10 prior is off. The refined surface lies between the prior and
+    the truth; the prior's own refinement is replaced by a stand-in that returns a set field."""
+
+    FOCAL = 300.0
+
+    def _check(self, monkeypatch, ellipsoid, towards_truth, prior_refined_to_truth, focal=FOCAL, **config):
+        truth, mask, image = ellipsoid
+        coarse = coarse_normals(mask, focal=focal)
+        refined = torch.nn.functional.normalize(coarse + towards_truth * (truth - coarse), dim=1) * mask
+        calls = []
+
+        def prior_refinement(image, mask, normals, sh, confidence, skip, *args):
+            calls.append((normals.clone(), confidence.clone(), skip.clone()))
+            return None, truth if prior_refined_to_truth else normals, sh
+
+        monkeypatch.setattr(pipeline, "_refine", prior_refinement)
+        cfg = resolve_config(config)
+        back = pipeline._prior_explains_better(image, mask, refined, torch.ones(1, dtype=torch.bool), focal, None, cfg)
+        return bool(back[0]), calls, coarse
+
+    def test_a_near_tie_goes_to_the_prior_when_its_refinement_explains_the_image_better(self, monkeypatch, ellipsoid):
+        # a fifth of the way to the truth: 0.74x the prior's residual, so no plain win for the prior
+        back, calls, coarse = self._check(monkeypatch, ellipsoid, 0.2, True)
+        assert back
+        (start, confidence, skip), = calls
+        torch.testing.assert_close(start, coarse)  # the prior refined from Eq. 10's normals
+        mask = ellipsoid[1]
+        torch.testing.assert_close(confidence, mask.float())  # with a uniform confidence
+        assert not bool(skip.any())
+
+    def test_a_near_tie_stays_refined_when_the_prior_refines_no_better(self, monkeypatch, ellipsoid):
+        back, calls, _ = self._check(monkeypatch, ellipsoid, 0.2, False)
+        assert not back and len(calls) == 1
+
+    @pytest.mark.parametrize("case", ["clear win", "rule off", "orthographic"])
+    def test_no_second_refinement_outside_a_perspective_near_tie(self, monkeypatch, ellipsoid, case):
+        # 0.7 of the way: 0.08x the prior's residual, a clear win for the refined surface
+        kwargs = {"clear win": dict(towards_truth=0.7), "rule off": dict(towards_truth=0.2, prior_check_tie=None),
+                  "orthographic": dict(towards_truth=0.2, focal=None)}[case]
+        back, calls, _ = self._check(monkeypatch, ellipsoid, prior_refined_to_truth=True, **kwargs)
+        assert not back and calls == []
 
 
 NO_RELIEF = {"relief_scale": 1.0, "relief_slope_power": 0, "relief_prior_passes": 0}  # the refined surface as it is
@@ -742,6 +802,8 @@ BAD_CONFIGS = [
     ({"conv_samples_per_tree": 0}, r"^conv_samples_per_tree must be an integer >= 1"),
     ({"prior_check_highlight": 0.0}, r"^prior_check_highlight must be a number > 0 or null, got 0.0"),
     ({"prior_check_highlight": float("nan")}, r"^prior_check_highlight must be a number > 0 or null, got nan"),
+    ({"prior_check_tie": 0.0}, r"^prior_check_tie must be a number in \(0, 1\] or null, got 0.0"),
+    ({"prior_check_tie": 1.5}, r"^prior_check_tie must be a number in \(0, 1\] or null, got 1.5"),
     ({"relief_scale": 0.0}, r"^relief_scale must be a number > 0, got 0.0"),
     ({"relief_scale": "deep"}, r"'deep' .*could not be converted to Float\s+full_key: relief_scale"),
     ({"relief_slope_power": float("inf")}, r"^relief_slope_power must be a number, got inf"),
