@@ -16,6 +16,7 @@ first tiny forest fit in each process, timed apart, takes the process's one-off 
 switched off through it, so that both run the same stages), ``--baseline-config`` the
 baseline's (its own key names). The table gives, per call kind, the median seconds of each
 tree, their ratio (this / baseline) and the median errors; ``--out`` gets the JSON.
+``--focal 300`` times perspective calls (images rendered and estimated with that focal length).
 """
 from __future__ import annotations
 
@@ -57,14 +58,14 @@ def _worker(tree: Path, scenes_path: Path, config: dict) -> None:
         for kind in ("estimated", "known"):
             start = time.perf_counter()
             est = sfs_torch.estimate(scene["image"], scene["mask"], lighting=scene["lighting"] if kind == "known" else None,
-                                     config=config, progress=False)
+                                     focal=scene["focal"], config=config, progress=False)
             seconds = time.perf_counter() - start
             error = float(normal_metrics(est.normals, scene["normals"], scene["mask"]).median[0])
             print(json.dumps({"case": scene["name"], "kind": kind, "seconds": seconds, "error": error,
                               "stages": {k: v for k, v in est.timings.items() if k != "database"}}), flush=True)
 
 
-def _scenes(n_shapes: int, n_lights: int, resolution: int, path: Path) -> None:
+def _scenes(n_shapes: int, n_lights: int, resolution: int, focal: float | None, path: Path) -> None:
     import torch
 
     from sfs_torch.datasets import evaluation_lightings, scene_shapes, synthetic_scenes
@@ -72,8 +73,8 @@ def _scenes(n_shapes: int, n_lights: int, resolution: int, path: Path) -> None:
 
     shapes = scene_shapes(n_shapes, "test", DatabaseConfig())
     scenes = [{"name": f"{s.shape}|{s.lighting_name}", "image": s.image, "mask": s.mask, "normals": s.normals,
-               "lighting": s.lighting}
-              for s in synthetic_scenes(shapes, evaluation_lightings(n_lights), resolution=resolution,
+               "lighting": s.lighting, "focal": focal}
+              for s in synthetic_scenes(shapes, evaluation_lightings(n_lights), resolution=resolution, focal=focal,
                                         lights_per_shape=1)]
     torch.save(scenes, path)
 
@@ -86,6 +87,7 @@ def main() -> None:
     parser.add_argument("--shapes", type=int, default=3)
     parser.add_argument("--lights", type=int, default=3)
     parser.add_argument("--resolution", type=int, default=256)
+    parser.add_argument("--focal", type=float, default=None, help="a perspective camera's focal length in pixels")
     parser.add_argument("--passes", type=int, default=2, help="passes of each tree, alternated")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "speed.json")
     parser.add_argument("--worker", nargs=3, metavar=("TREE", "SCENES", "CONFIG"), help=argparse.SUPPRESS)
@@ -101,7 +103,7 @@ def main() -> None:
     warm_ups = {name: [] for name in trees}
     with tempfile.TemporaryDirectory() as tmp:
         scenes = Path(tmp) / "scenes.pt"
-        _scenes(args.shapes, args.lights, args.resolution, scenes)
+        _scenes(args.shapes, args.lights, args.resolution, args.focal, scenes)
         for p in range(args.passes):
             for name, (tree, config) in trees.items():
                 # run from the tree's own root: the editable install would otherwise be imported
@@ -139,6 +141,7 @@ def main() -> None:
           f"{statistics.median(warm_ups['this']):.2f} | baseline {statistics.median(warm_ups['baseline']):.2f}")
     load = os.getloadavg()
     summary.update({"warm_up_seconds": warm_ups, "images": args.shapes, "passes": args.passes, "resolution": args.resolution,
+                    "focal": args.focal,
                     "config": args.config, "baseline": str(args.baseline), "baseline_config": trees["baseline"][1],
                     "load_average": load, "rows": rows})
     print(f"\nload average {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}; {len(rows)} calls")
