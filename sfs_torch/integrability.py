@@ -692,34 +692,50 @@ def integrate_convex(
     return _result(_surface(s, mask, focal, principal_point), dtype, single)
 
 
-def _derivative(s: Tensor, m: Tensor, dim: int) -> Tensor:
-    """Derivative of ``s`` along ``dim`` (-1: columns, -2: rows, increasing index) on the mask.
+_OFFSETS = (-2, -1, 0, 1, 2)
+
+
+def _stencil(m: Tensor, dim: int) -> Tensor:
+    """Coefficients of the derivative along ``dim`` (-1: columns, -2: rows, increasing index)
+    on the mask ``m`` (B, H, W) bool: (5, B, H, W), one map per offset of :data:`_OFFSETS`.
 
     Central where both neighbours lie in the mask, else second-order one-sided, else
-    first-order one-sided, else 0; exact for quadratics, like the solver's edge rule.
+    first-order one-sided, else 0 (and 0 off the mask); exact for quadratics, like the
+    solver's edge rule. The rule depends on the mask alone, so an inner loop computes it once.
     """
 
-    def shift(x: Tensor, k: int) -> Tensor:
-        # value at index + k, 0 beyond the border
-        n = x.shape[dim]
+    def inside(k: int) -> Tensor:
+        # whether the pixel at index + k lies in the mask (not beyond the border)
+        n = m.shape[dim]
         if abs(k) >= n:
-            return torch.zeros_like(x)
+            return torch.zeros_like(m)
         if k > 0:
-            return F.pad(x.narrow(dim, k, n - k), _pad_arg(dim, 0, k))
-        return F.pad(x.narrow(dim, 0, n + k), _pad_arg(dim, -k, 0))
+            return F.pad(m.narrow(dim, k, n - k), _pad_arg(dim, 0, k))
+        return F.pad(m.narrow(dim, 0, n + k), _pad_arg(dim, -k, 0))
 
-    mf = m.to(s.dtype)
-    has = {k: shift(mf, k) > 0 for k in (-2, -1, 1, 2)}
-    val = {k: shift(s, k) for k in (-2, -1, 1, 2)}
-    central = 0.5 * (val[1] - val[-1])
-    fwd2 = 0.5 * (-3.0 * s + 4.0 * val[1] - val[2])
-    bwd2 = 0.5 * (3.0 * s - 4.0 * val[-1] + val[-2])
-    out = torch.where(has[1] & has[-1], central,
-          torch.where(has[1] & has[2], fwd2,
-          torch.where(has[-1] & has[-2], bwd2,
-          torch.where(has[1], val[1] - s,
-          torch.where(has[-1], s - val[-1], torch.zeros_like(s))))))
-    return torch.where(m, out, 0.0)
+    has = {k: inside(k) for k in (-2, -1, 1, 2)}
+    central = has[1] & has[-1]
+    forward2 = ~central & has[1] & has[2]
+    backward2 = ~central & ~forward2 & has[-1] & has[-2]
+    forward1 = ~central & ~forward2 & ~backward2 & has[1]
+    backward1 = ~central & ~forward2 & ~backward2 & ~forward1 & has[-1]
+    rules = [  # where each rule applies, and its coefficients of offsets -2 .. 2
+        (central, (0.0, -0.5, 0.0, 0.5, 0.0)), (forward2, (0.0, 0.0, -1.5, 2.0, -0.5)),
+        (backward2, (0.5, -2.0, 1.5, 0.0, 0.0)), (forward1, (0.0, 0.0, -1.0, 1.0, 0.0)),
+        (backward1, (0.0, -1.0, 1.0, 0.0, 0.0)),
+    ]
+    coefficients = torch.zeros(len(_OFFSETS), *m.shape, device=m.device)
+    for where, values in rules:
+        coefficients += torch.tensor(values, device=m.device)[:, None, None, None] * (where & m)
+    return coefficients
+
+
+def _apply_stencil(s: Tensor, coefficients: Tensor, dim: int) -> Tensor:
+    """The derivative of ``s`` (B, H, W) whose :func:`_stencil` along ``dim`` is ``coefficients``."""
+    padded = F.pad(s, _pad_arg(dim, 2, 2))
+    n = s.shape[dim]
+    shifted = torch.stack([padded.narrow(dim, 2 + k, n) for k in _OFFSETS])
+    return (coefficients * shifted).sum(0)
 
 
 def _pad_arg(dim: int, before: int, after: int) -> Tuple[int, ...]:
@@ -821,18 +837,33 @@ def median_slope(normals: Tensor, mask: Tensor) -> Tensor:
 def field_normals(s: Tensor, m: Tensor, focal: Optional[float], principal_point: Optional[Sequence[float]]) -> Tensor:
     """Unit normals of the integrated field ``s`` (height, or log-depth with ``focal``).
 
-    Unchecked, for inner loops (:mod:`sfs_torch.refine`); :func:`depth_to_normals` is the
-    checked public form. ``s`` and ``m`` are :math:`(B, H, W)`; returns :math:`(B, 3, H, W)`.
+    Unchecked; :func:`depth_to_normals` is the checked public form and
+    ``_FieldNormals`` the form for inner loops (:mod:`sfs_torch.refine`). ``s`` and
+    ``m`` are :math:`(B, H, W)`; returns :math:`(B, 3, H, W)`.
     """
-    gu = _derivative(s, m, -1)
-    gv = -_derivative(s, m, -2)  # rows grow downwards, v upwards
-    if focal is None:
-        n = torch.stack([-gu, -gv, torch.ones_like(gu)], 1)
-    else:
-        h, w = s.shape[-2:]
-        u, v = pixel_grid(h, w, principal_point, device=s.device, dtype=s.dtype)
-        n = torch.stack([focal * gu, focal * gv, 1.0 + u * gu + v * gv], 1)
-    return torch.where(m[:, None], _unit(n), 0.0)
+    return _FieldNormals(m, focal, principal_point, s.dtype)(s)
+
+
+class _FieldNormals:
+    """:func:`field_normals` on one mask ``m`` (B, H, W) bool, camera and dtype, for many fields:
+    what depends on the mask and camera alone (the derivatives' stencils, the pixel grid) is
+    computed once, not in every step of the refinement's inner loop."""
+
+    def __init__(self, m: Tensor, focal: Optional[float], principal_point: Optional[Sequence[float]],
+                 dtype: torch.dtype = torch.float32):
+        self.inside, self.focal = m[:, None].to(dtype), focal
+        self.along_u, self.along_v = (_stencil(m, dim).to(dtype) for dim in (-1, -2))
+        self.grid = None if focal is None else pixel_grid(*m.shape[-2:], principal_point, device=m.device, dtype=dtype)
+
+    def __call__(self, s: Tensor) -> Tensor:
+        gu = _apply_stencil(s, self.along_u, -1)
+        gv = -_apply_stencil(s, self.along_v, -2)  # rows grow downwards, v upwards
+        if self.focal is None:
+            n = torch.stack([-gu, -gv, torch.ones_like(gu)], 1)
+        else:
+            u, v = self.grid
+            n = torch.stack([self.focal * gu, self.focal * gv, 1.0 + u * gu + v * gv], 1)
+        return _unit(n) * self.inside  # a product: where() took several times as long, forward and backward
 
 
 def _unit(v: Tensor) -> Tensor:

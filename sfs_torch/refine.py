@@ -40,6 +40,7 @@ Both minimise, per image,
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from typing import Optional, Sequence, Tuple
 
@@ -48,7 +49,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ._checks import check_finite, check_mask, check_same_size, check_shape, is_integer
-from .integrability import _dx, _dy, _edge_masks, _unit, field_normals, integrate_normals
+from .integrability import _FieldNormals, _dx, _dy, _edge_masks, _unit, field_normals, integrate_normals
 from .lighting import render_sh
 from .natural_lighting import LightingPrior, lighting_prior_energy, load_lighting_prior
 from .silhouette import SilhouetteConfig, coarse_normals
@@ -313,13 +314,26 @@ def _robust_residual(shading: Tensor, image: Tensor, mask: Tensor, delta: float,
 
 def _robust_penalty(shading: Tensor, image: Tensor, mask: Tensor, delta: float, dark_level: float) -> Tensor:
     """:func:`_robust_residual` per pixel and channel: (B, C, H, W)."""
+    return _penalty(shading, image, _residual_bounds(image, mask, dark_level), delta)
+
+
+def _residual_bounds(image: Tensor, mask: Tensor, dark_level: float) -> Tuple[Tensor, Tensor, Tensor]:
+    """What the robust residual of an image needs besides a shading: ``(scale, low, high)``,
+    its mean value on the mask (B, 1, 1, 1) and, per pixel and channel, bounds on
+    ``shading - image`` (B, C, H, W): clipped pixels only bound the shading, as an attached
+    shadow may render below 0 and a highlight above 1."""
     scale = _masked_mean(image, mask).clamp_min(1e-6)[:, None, None, None]
-    residual = shading - image
-    # clipped pixels only bound the shading: an attached shadow may render below 0 and a
-    # highlight above 1
-    residual = torch.where(image <= dark_level, residual.clamp_min(0),
-                           torch.where(image >= 1, residual.clamp_max(0), residual)) / scale
-    return _charbonnier(residual, delta)
+    dark = image <= dark_level
+    low = torch.where(dark, 0.0, image.new_tensor(-math.inf))
+    high = torch.where((image >= 1) & ~dark, 0.0, image.new_tensor(math.inf))
+    return scale, low, high
+
+
+def _penalty(shading: Tensor, image: Tensor, bounds: Tuple[Tensor, Tensor, Tensor], delta: float) -> Tensor:
+    """The Charbonnier penalty of ``(shading - image) / scale``, held within ``bounds``
+    (:func:`_residual_bounds`): (B, C, H, W)."""
+    scale, low, high = bounds
+    return _charbonnier((shading - image).clamp(low, high) / scale, delta)
 
 
 def _charbonnier(x: Tensor, delta: float) -> Tensor:
@@ -341,7 +355,8 @@ def refinement_loss(
 ) -> RefinementLoss:
     """The refinement energy of normals and a lighting (see the module docstring).
 
-    Unchecked inner-loop form; :func:`refine_shape_and_lighting` validates its inputs.
+    Unchecked: :func:`refine_shape_and_lighting` validates its inputs, then evaluates this
+    energy in every step.
     Differentiable in ``normals`` and ``lighting`` (for the surface model, compose with
     :func:`sfs_torch.integrability.field_normals`).
 
@@ -360,21 +375,46 @@ def refinement_loss(
     Returns:
         :class:`RefinementLoss`.
     """
-    cfg = config or RefineConfig()
-    # unchecked: called in every step of the refinement, on the fields it checked at its entry
-    photometric = _robust_residual(render_sh(normals, lighting), image, mask, cfg.delta, cfg.dark_level)
-    normal_prior = _masked_mean(confidence * (1 - (normals * prior_normals).sum(1, keepdim=True)), mask)
-    rim = rim_normals.abs().sum(1, keepdim=True) > 0
-    contour = _masked_mean(1 - (normals * rim_normals).sum(1, keepdim=True), rim)
-    # neighbour differences on the pairs of mask pixels the integrator also uses
-    ex, ey = _edge_masks(mask)
-    pairs = _dx(normals).square().sum(1, keepdim=True) * ex + _dy(normals).square().sum(1, keepdim=True) * ey
-    smooth = pairs.flatten(1).sum(1) / mask.flatten(1).sum(1).clamp_min(1).to(normals.dtype)
-    prior = lighting_prior if lighting_prior is not None else load_lighting_prior(device=lighting.device)
-    light = lighting_prior_energy(lighting, prior)  # used in the lighting's device and dtype
-    total = (photometric + cfg.normal_weight * normal_prior + cfg.contour_weight * contour
-             + cfg.smoothness * smooth + cfg.lighting_weight * light)
-    return RefinementLoss(total, photometric, normal_prior, contour, smooth, light)
+    return _Energy(image, mask, prior_normals, confidence, rim_normals, config or RefineConfig(),
+                   lighting_prior)(normals, lighting)
+
+
+class _Energy:
+    """:func:`refinement_loss` for one image, mask, normal prior, confidence, rim, config and
+    lighting prior, as a function of the normals and the lighting. What depends on those
+    alone (each term's pixel weights, the residual's bounds) is computed once: the
+    refinement evaluates it in every step. Unchecked: :func:`refine_shape_and_lighting`
+    validates its inputs."""
+
+    def __init__(self, image: Tensor, mask: Tensor, prior_normals: Tensor, confidence: Tensor, rim_normals: Tensor,
+                 cfg: RefineConfig, lighting_prior: Optional[LightingPrior]):
+        self.image, self.prior_normals, self.rim_normals, self.cfg = image, prior_normals, rim_normals, cfg
+        self.bounds = _residual_bounds(image, mask, cfg.dark_level)
+        mf = mask.to(image.dtype)
+        count = mf.flatten(1).sum(1)[:, None, None, None]
+        # the terms are means: over the mask (and, photometric, the channels), over the rim
+        self.photometric_weight = mf / (3 * count).clamp_min(1.0)
+        self.prior_weight = confidence * mf / count.clamp_min(1.0)
+        rim = (rim_normals.abs().sum(1, keepdim=True) > 0).to(image.dtype)
+        self.rim_weight = rim / rim.flatten(1).sum(1)[:, None, None, None].clamp_min(1.0)
+        # neighbour differences on the pairs of mask pixels the integrator also uses
+        ex, ey = _edge_masks(mask)
+        self.edges = (ex / count.clamp_min(1.0), ey / count.clamp_min(1.0))
+        self.lighting_prior = lighting_prior if lighting_prior is not None else load_lighting_prior(device=image.device)
+
+    def __call__(self, normals: Tensor, lighting: Tensor) -> RefinementLoss:
+        cfg = self.cfg
+        penalty = _penalty(render_sh(normals, lighting), self.image, self.bounds, cfg.delta)
+        photometric = (penalty * self.photometric_weight).flatten(1).sum(1)
+        normal_prior = ((1 - (normals * self.prior_normals).sum(1, keepdim=True)) * self.prior_weight).flatten(1).sum(1)
+        contour = ((1 - (normals * self.rim_normals).sum(1, keepdim=True)) * self.rim_weight).flatten(1).sum(1)
+        ex, ey = self.edges
+        pairs = _dx(normals).square().sum(1, keepdim=True) * ex + _dy(normals).square().sum(1, keepdim=True) * ey
+        smooth = pairs.flatten(1).sum(1)
+        light = lighting_prior_energy(lighting, self.lighting_prior)  # used in the lighting's device and dtype
+        total = (photometric + cfg.normal_weight * normal_prior + cfg.contour_weight * contour
+                 + cfg.smoothness * smooth + cfg.lighting_weight * light)
+        return RefinementLoss(total, photometric, normal_prior, contour, smooth, light)
 
 
 def refine_shape_and_lighting(
@@ -504,9 +544,10 @@ def _optimise(lighting, image, mask, normals, weights, rim_normals, focal, princ
     light = lighting.detach().clone(memory_format=torch.contiguous_format).requires_grad_(optimise_lighting)
     params = variable.parameters + ([light] if optimise_lighting else [])
 
+    energy = _Energy(image, mask, normals, weights, rim_normals, cfg, prior)
+
     def loss_of(l: Tensor) -> Tensor:
-        return refinement_loss(variable.normals(), l, image, mask, normals, weights, rim_normals, config=cfg,
-                               lighting_prior=prior).total
+        return energy(variable.normals(), l).total
 
     with torch.no_grad():
         start_value = variable.value()
@@ -562,21 +603,32 @@ class _Pyramid:
 
     def __init__(self, start: Tensor, n_levels: int, m: Tensor, focal, principal_point):
         h, w = start.shape[-2:]
-        self.size, self.m, self.focal, self.principal_point = (h, w), m, focal, principal_point
+        self.field_normals = _FieldNormals(m, focal, principal_point, start.dtype)
         self.parameters = [start.clone(memory_format=torch.contiguous_format).requires_grad_(True)]
+        # bilinear upsampling (``F.interpolate``, ``align_corners=False``) is separable: a
+        # matrix product on each side, whose backward takes a fraction of interpolate's
+        self.upsampling = []
         for level in range(1, n_levels):
             shape = (max(1, h >> level), max(1, w >> level))
             self.parameters.append(torch.zeros(start.shape[0], *shape, dtype=start.dtype, device=start.device,
                                                requires_grad=True))
+            self.upsampling.append((_upsampling(shape[0], h, start), _upsampling(shape[1], w, start).T))
 
     def value(self) -> Tensor:
         out = self.parameters[0]
-        for coarse in self.parameters[1:]:
-            out = out + F.interpolate(coarse[:, None], size=self.size, mode="bilinear", align_corners=False)[:, 0]
+        for coarse, (rows, cols) in zip(self.parameters[1:], self.upsampling):
+            out = out + rows @ coarse @ cols
         return out
 
     def normals(self) -> Tensor:
-        return field_normals(self.value(), self.m, self.focal, self.principal_point)
+        return self.field_normals(self.value())
+
+
+def _upsampling(size: int, out: int, like: Tensor) -> Tensor:
+    """(out, size): the 1-D linear upsampling from ``size`` to ``out`` samples of bilinear
+    ``F.interpolate`` (``align_corners=False``), in ``like``'s dtype and device."""
+    eye = torch.eye(size, dtype=like.dtype, device=like.device)[:, None, :, None]
+    return F.interpolate(eye, size=(out, 1), mode="bilinear", align_corners=False)[:, 0, :, 0].T
 
 
 class PhotometricRefiner(nn.Module):

@@ -505,6 +505,42 @@ class TestDepthToNormals:
         assert float(err.median()) < 0.2
         assert depth_to_normals(z, mask).dtype == dtype
 
+    @pytest.mark.parametrize("focal", [None, 9.0], ids=["orthographic", "perspective"])
+    def test_each_pixel_follows_the_derivative_rule(self, focal):
+        # a mask with runs of 1 to 5 pixels in both directions, so that every rule applies
+        # somewhere: central, second- and first-order one-sided, none; checked against the
+        # rule written out pixel by pixel
+        mask = torch.zeros(12, 12, dtype=torch.bool)
+        mask[1, 1], mask[3, 1:3], mask[5, 1:4], mask[7:12, 6], mask[1:6, 8:12] = True, True, True, True, True
+        depth = 2.0 + torch.rand(12, 12, dtype=F64, generator=torch.Generator().manual_seed(0))
+        s = torch.log(depth) if focal else depth
+
+        def derivative(i, j, di, dj):
+            def at(k):
+                y, x = i + k * di, j + k * dj
+                return bool(mask[y, x]) if 0 <= y < 12 and 0 <= x < 12 else False
+
+            val = lambda k: float(s[i + k * di, j + k * dj])  # noqa: E731
+            if at(1) and at(-1):
+                return 0.5 * (val(1) - val(-1))
+            if at(1) and at(2):
+                return 0.5 * (-3 * val(0) + 4 * val(1) - val(2))
+            if at(-1) and at(-2):
+                return 0.5 * (3 * val(0) - 4 * val(-1) + val(-2))
+            if at(1):
+                return val(1) - val(0)
+            return val(0) - val(-1) if at(-1) else 0.0
+
+        u, v = pixel_grid(12, 12, dtype=F64)
+        expected = torch.zeros(3, 12, 12, dtype=F64)
+        for i, j in mask.nonzero().tolist():
+            gu, gv = derivative(i, j, 0, 1), -derivative(i, j, 1, 0)
+            n = torch.tensor([-gu, -gv, 1.0] if focal is None else
+                             [focal * gu, focal * gv, 1.0 + float(u[i, j]) * gu + float(v[i, j]) * gv], dtype=F64)
+            expected[:, i, j] = n / n.norm()
+        got = depth_to_normals(torch.where(mask, depth, 0.0)[None, None], mask[None, None], focal)[0]
+        torch.testing.assert_close(got, expected, atol=1e-12, rtol=0)
+
     def test_exception(self):
         with pytest.raises(ValueError, match="depth"):
             depth_to_normals(torch.zeros(1, 2, 4, 4), torch.ones(1, 1, 4, 4))

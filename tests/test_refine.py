@@ -12,6 +12,7 @@ from sfs_torch.image_formation import dominant_light
 from sfs_torch.integrability import field_normals
 from sfs_torch.lighting import natural_lightings, render_sh, rotate_sh
 from sfs_torch.metrics import lmse, normal_metrics
+from sfs_torch.natural_lighting import lighting_prior_energy, load_lighting_prior
 from sfs_torch.reflectance_map import refit_lighting
 from sfs_torch.refine import (
     PhotometricRefiner,
@@ -255,6 +256,39 @@ class TestRefinementLoss:
         exact = refinement_loss(normals, 2 * sh, image, mask, normals, mask.float(), rim, config=cfg)
         assert float(exact.photometric[0]) < 1e-6  # rendering above 1 where the image is clipped costs nothing
 
+    def test_terms_equal_their_formulas(self, scene):
+        # against the module docstring's energy written out term by term
+        normals, mask, sh, image, start, start_sh = scene
+        image = image.clone()
+        image[..., 10:20, 15:30] = 1.0  # pixels clipped at 1 ...
+        image[..., 30:, :] = torch.where(image[..., 30:, :] < 0.2, 0.0, image[..., 30:, :])  # ... and at 0
+        image = image * mask
+        confidence = torch.rand(mask.shape, generator=torch.Generator().manual_seed(0)) * mask
+        rim = coarse_normals(mask) * rim_pixels(mask)
+        cfg = RefineConfig()
+        got = refinement_loss(start, start_sh, image, mask, normals, confidence, rim, config=cfg)
+        m = mask[0, 0]
+        r = (render_sh(start, start_sh) - image)[0][:, m]
+        values = image[0][:, m]
+        r = torch.where(values <= cfg.dark_level, r.clamp_min(0), torch.where(values >= 1, r.clamp_max(0), r))
+        assert bool((values <= cfg.dark_level).any() and (values >= 1).any())
+        r = r / values.mean()
+        photometric = (torch.sqrt(r * r + cfg.delta**2) - cfg.delta).mean()
+        normal_prior = (confidence[0, 0][m] * (1 - (start * normals).sum(1)[0][m])).mean()
+        on_rim = rim[0].abs().sum(0) > 0
+        contour = (1 - (start * rim).sum(1)[0][on_rim]).mean()
+        pairs = sum(float((start[0, :, i, j] - start[0, :, i + di, j + dj]).square().sum())
+                    for i, j in m.nonzero().tolist() for di, dj in ((0, 1), (1, 0))
+                    if i + di < 48 and j + dj < 48 and m[i + di, j + dj])
+        smooth = pairs / int(m.sum())
+        for term, expected in (("photometric", photometric), ("normal_prior", normal_prior), ("contour", contour),
+                               ("smoothness", smooth)):
+            torch.testing.assert_close(float(getattr(got, term)[0]), float(expected), rtol=1e-5, atol=0)
+        total = (photometric + cfg.normal_weight * normal_prior + cfg.contour_weight * contour
+                 + cfg.smoothness * smooth + cfg.lighting_weight
+                 * float(lighting_prior_energy(start_sh, load_lighting_prior())[0]))
+        torch.testing.assert_close(float(got.total[0]), float(total), rtol=1e-5, atol=0)
+
     @pytest.mark.parametrize("focal", [None, 60.0])
     def test_truth_explains_the_image(self, focal):
         view = render_normals(blobby_mesh(3), torch.eye(3, dtype=torch.float64), 48, focal=focal)
@@ -370,13 +404,13 @@ class TestRefineShapeAndLighting:
         # from inside torch's strong-Wolfe search)
         normals, mask, sh, image, _, _ = scene
         floor = 1.1 * float(sh[0, 0, 0])
-        loss = refine_module.refinement_loss
+        loss = refine_module._Energy.__call__
 
-        def nan_below_floor(normals, lighting, *args, **kwargs):
-            out = loss(normals, lighting, *args, **kwargs)
+        def nan_below_floor(energy, normals, lighting):
+            out = loss(energy, normals, lighting)
             return dataclasses.replace(out, total=torch.where(lighting[:, 0, 0] < floor, math.nan, out.total))
 
-        monkeypatch.setattr(refine_module, "refinement_loss", nan_below_floor)
+        monkeypatch.setattr(refine_module._Energy, "__call__", nan_below_floor)
         out = refine_shape_and_lighting(image, mask, normals, 1.15 * sh,
                                         config=RefineConfig(model="surface", iterations=50))
         assert float(out.loss_after[0]) < 0.5 * float(out.loss_before[0])
@@ -387,17 +421,32 @@ class TestRefineShapeAndLighting:
         # not swallowed as a "divergence" that silently returns the start
         _, mask, sh, image, start, start_sh = scene
         calls = []
-        loss = refine_module.refinement_loss
+        loss = refine_module._Energy.__call__
 
-        def failing(*args, **kwargs):
+        def failing(*args):
             calls.append(1)
             if len(calls) == 3:  # a trial step inside the optimisation
                 raise RuntimeError("boom")
-            return loss(*args, **kwargs)
+            return loss(*args)
 
-        monkeypatch.setattr(refine_module, "refinement_loss", failing)
+        monkeypatch.setattr(refine_module._Energy, "__call__", failing)
         with pytest.raises(RuntimeError, match="boom"):
             refine_shape_and_lighting(image, mask, start, start_sh, config=RefineConfig(model="surface", iterations=5))
+
+    def test_the_pyramid_is_its_levels_upsampled_and_summed(self):
+        # against F.interpolate, the definition (odd sizes, a level one pixel wide)
+        m = torch.ones(2, 37, 9, dtype=torch.bool)
+        start = torch.randn(2, 37, 9, dtype=torch.float64)
+        pyramid = refine_module._Pyramid(start, 5, m, None, None)
+        generator = torch.Generator().manual_seed(0)
+        with torch.no_grad():
+            for level in pyramid.parameters[1:]:
+                level.copy_(torch.randn(level.shape, generator=generator, dtype=torch.float64))
+        expected = start + sum(torch.nn.functional.interpolate(level[:, None].detach(), size=(37, 9), mode="bilinear",
+                                                               align_corners=False)[:, 0]
+                               for level in pyramid.parameters[1:])
+        assert [tuple(p.shape[1:]) for p in pyramid.parameters] == [(37, 9), (18, 4), (9, 2), (4, 1), (2, 1)]
+        torch.testing.assert_close(pyramid.value(), expected, atol=1e-12, rtol=0)
 
     def test_module_equals_function(self, scene):
         _, mask, sh, image, start, start_sh = scene
