@@ -393,7 +393,7 @@ class _Energy:
         mf = mask.to(image.dtype)
         count = mf.flatten(1).sum(1)[:, None, None, None]
         # the terms are means: over the mask (and, photometric, the channels), over the rim
-        self.photometric_weight = mf / (3 * count).clamp_min(1.0)
+        self.photometric_weight = mf / (image.shape[1] * count).clamp_min(1.0)
         self.prior_weight = confidence * mf / count.clamp_min(1.0)
         rim = (rim_normals.abs().sum(1, keepdim=True) > 0).to(image.dtype)
         self.rim_weight = rim / rim.flatten(1).sum(1)[:, None, None, None].clamp_min(1.0)
