@@ -17,6 +17,10 @@ by more than 1 deg.
     python benchmarks/tune.py --side test --shapes 5 --lights 3 --variants '{"refine_rounds": 0}' '{}'
     python benchmarks/tune.py --side test --shapes 6 --lights 5 --no-sphere --ablation
 
+The shapes are spread over the split (``sfs_torch.datasets.scene_shapes``), so ``--shapes 4``
+is not the first four of ``--shapes 7``: to share one run between two processes, split its
+lightings (``--first-light``), not its shapes.
+
 ``--ablation`` runs :data:`ABLATION`: the paper's method, then each addition on top of
 the one before, then the default (the learnt relief prior without the relief scale
 before it, which it made redundant), and the default with the true lighting given.
@@ -73,7 +77,8 @@ def main() -> None:
                         help="validation: tune on it; test: report an ablation on it")
     parser.add_argument("--shapes", type=int, default=3)
     parser.add_argument("--first-shape", type=int, default=0,
-                        help="leave out the first this many of the --first-shape + --shapes shapes (the sphere stays)")
+                        help="leave out the first this many of the --first-shape + --shapes shapes (the sphere stays; "
+                             "a selection of that size, not a prefix of a larger one)")
     parser.add_argument("--lights", type=int, default=3)
     parser.add_argument("--first-light", type=int, default=0,
                         help="skip this many lightings first (the same lightings --lights would give after them)")
