@@ -850,7 +850,7 @@ class _FieldNormals:
     computed once, not in every step of the refinement's inner loop."""
 
     def __init__(self, m: Tensor, focal: Optional[float], principal_point: Optional[Sequence[float]],
-                 dtype: torch.dtype = torch.float32):
+                 dtype: torch.dtype):
         self.inside, self.focal = m[:, None].to(dtype), focal
         self.along_u, self.along_v = (_stencil(m, dim).to(dtype) for dim in (-1, -2))
         self.grid = None if focal is None else pixel_grid(*m.shape[-2:], principal_point, device=m.device, dtype=dtype)

@@ -391,15 +391,15 @@ class _Energy:
         self.image, self.prior_normals, self.rim_normals, self.cfg = image, prior_normals, rim_normals, cfg
         self.bounds = _residual_bounds(image, mask, cfg.dark_level)
         mf = mask.to(image.dtype)
-        count = mf.flatten(1).sum(1)[:, None, None, None]
+        count = mf.flatten(1).sum(1)[:, None, None, None].clamp_min(1.0)
         # the terms are means: over the mask (and, photometric, the channels), over the rim
-        self.photometric_weight = mf / (image.shape[1] * count).clamp_min(1.0)
-        self.prior_weight = confidence * mf / count.clamp_min(1.0)
+        self.photometric_weight = mf / (image.shape[1] * count)
+        self.prior_weight = confidence * mf / count
         rim = (rim_normals.abs().sum(1, keepdim=True) > 0).to(image.dtype)
         self.rim_weight = rim / rim.flatten(1).sum(1)[:, None, None, None].clamp_min(1.0)
         # neighbour differences on the pairs of mask pixels the integrator also uses
         ex, ey = _edge_masks(mask)
-        self.edges = (ex / count.clamp_min(1.0), ey / count.clamp_min(1.0))
+        self.edges = (ex / count, ey / count)
         self.lighting_prior = lighting_prior if lighting_prior is not None else load_lighting_prior(device=image.device)
 
     def __call__(self, normals: Tensor, lighting: Tensor) -> RefinementLoss:
