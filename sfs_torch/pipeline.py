@@ -790,11 +790,13 @@ def estimate(
     )
 
 
-def _refine(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, confidence: Tensor, skip: Tensor,
+def _refine(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, confidence: Tensor, skip: Optional[Tensor],
             cfg: PipelineConfig, given: bool, focal: Optional[float], principal_point: Optional[tuple]) -> tuple:
     """``(depth or None, normals, lighting)`` after the photometric refinement of the
-    images not in ``skip`` (B,) bool; those in it keep their normals and lighting, and get
-    the refinement's starting surface as their depth (the L2 integration of the normals)."""
+    images not in ``skip`` (B,) bool (``None``: every image); those in it keep their normals
+    and lighting, and get the refinement's starting surface as their depth (the L2
+    integration of the normals)."""
+    skip = torch.zeros(len(image), dtype=torch.bool, device=image.device) if skip is None else skip
     # a given lighting is trusted exactly, never refined
     config = replace(cfg.refine, optimise_lighting=cfg.refine.optimise_lighting and not given)
     normals, sh, depth = normals.clone(), sh.clone(), None
@@ -824,9 +826,8 @@ def _final_round(image: Tensor, mask: Tensor, normals: Tensor, rows: Tensor, db:
     unjittered = replace(cfg, refine_rounds=0, training=replace(cfg.training, brightness_jitter=0.0, colour_jitter=0.0))
     found = _forest_rounds(image, mask, rows, sh, db, unjittered, timer, given=False, centroid=centroid, focal=focal,
                            principal_point=principal_point)
-    depth, normals, sh = _refine(image, mask, found.normals, found.lighting[None], found.confidence,
-                                 torch.zeros(1, dtype=torch.bool, device=image.device), cfg, False, focal,
-                                 principal_point)
+    depth, normals, sh = _refine(image, mask, found.normals, found.lighting[None], found.confidence, None, cfg,
+                                 False, focal, principal_point)
     return depth, normals, sh, found.confidence
 
 
@@ -890,8 +891,8 @@ def _perspective_relief(image: Tensor, mask: Tensor, surface: tuple, among: Tens
     local = torch.einsum("bji,bjhw->bihw", rotation, normals[items])
     turned = torch.einsum("bij,bjhw->bihw", rotation, apply_relief(local, m, _relief_transform(local, m, cfg)))
     start = refit_lighting(image[items], m, turned, valid=cfg.valid_refit).to(sh.dtype)
-    refined = _refine(image[items], m, turned.to(normals.dtype), start, confidence[items],
-                      torch.zeros_like(items, dtype=torch.bool), cfg, False, focal, principal_point)
+    refined = _refine(image[items], m, turned.to(normals.dtype), start, confidence[items], None, cfg, False, focal,
+                      principal_point)
     keep = (photometric_residual(refined[1], refined[2], image[items], m)
             <= photometric_residual(normals[items], sh[items], image[items], m))
     depth, normals, sh, corrected = depth.clone(), normals.clone(), sh.clone(), torch.zeros_like(among)
@@ -919,11 +920,10 @@ def _refined_relief(image: Tensor, mask: Tensor, surface: tuple, among: Tensor, 
     depth, normals, sh = depth.clone(), normals.clone(), sh.clone()
     m = mask[items]
     later = _prior_alone(cfg)
-    skipped = torch.zeros_like(items, dtype=torch.bool)  # none of them: each is refined and corrected
+    every = torch.ones_like(items, dtype=torch.bool)
     for _ in range(cfg.relief_refinements):
-        refined = _refine(image[items], m, normals[items], sh[items], confidence[items], skipped, cfg, False, None,
-                          None)
-        depth[items], normals[items], sh[items] = _scaled_relief(image[items], m, *refined, ~skipped, later)
+        refined = _refine(image[items], m, normals[items], sh[items], confidence[items], None, cfg, False, None, None)
+        depth[items], normals[items], sh[items] = _scaled_relief(image[items], m, *refined, every, later)
     return depth, normals, sh
 
 
@@ -1013,9 +1013,7 @@ def _refined_prior_explains_better(image: Tensor, mask: Tensor, coarse: Tensor, 
     own refitted lighting like the surface they are weighed against (the prior's
     confidence uniform), explain the images better than that surface's ``score`` (N,)."""
     sh = refit_lighting(image, mask, coarse, valid=cfg.valid_refit)
-    none_skipped = torch.zeros(len(image), dtype=torch.bool, device=image.device)
-    _, refined, _ = _refine(image, mask, coarse, sh, mask.to(image.dtype), none_skipped, cfg, False, focal,
-                            principal_point)
+    _, refined, _ = _refine(image, mask, coarse, sh, mask.to(image.dtype), None, cfg, False, focal, principal_point)
     better = free_lighting_residual(refined, image, mask, highlight=cfg.prior_check_highlight) < score
     log.info("near ties with the silhouette prior: its refined surface explains %d of %d better", int(better.sum()),
              len(better))
@@ -1031,8 +1029,8 @@ def _back_to_prior(image: Tensor, mask: Tensor, depth: Tensor, normals: Tensor, 
     place) and, as depth, their L2 integration."""
     items = back.nonzero()[:, 0]
     m = mask[items]
-    coarse = coarse_normals(m, focal=focal, principal_point=principal_point, config=cfg.silhouette).to(normals.dtype)
-    prior_sh = refit_lighting(image[items], m, coarse, valid=cfg.valid_refit)
+    coarse, prior_sh = _silhouette_prior(image[items], m, normals.dtype, focal, principal_point, cfg.silhouette,
+                                         cfg.valid_refit)
     for b in items.tolist():
         confidence[b, 0][mask[b, 0]] = confidence[b, 0][mask[b, 0]].median()
     everything = torch.ones_like(items, dtype=torch.bool)
@@ -1185,6 +1183,16 @@ def _with_image_noise(cfg: PipelineConfig, image: Tensor, mask: Tensor) -> Pipel
     return replace(cfg, training=replace(cfg.training, noise_sigma=round(sigma, 5)))
 
 
+def _silhouette_prior(image: Tensor, mask: Tensor, dtype: torch.dtype, focal: Optional[float],
+                      principal_point: Optional[tuple], silhouette: Optional[SilhouetteConfig],
+                      valid: Optional[bool]) -> tuple:
+    """``(normals, lighting)``: Eq. 10's coarse normals of each ``mask`` (B, 1, H, W) as
+    ``(B, 3, H, W)`` of ``dtype``, and the lighting (B, 3, 9) :func:`refit_lighting` fits to
+    them with ``valid`` (``None``: not fitted, for a given lighting)."""
+    coarse = coarse_normals(mask, focal=focal, principal_point=principal_point, config=silhouette).to(dtype)
+    return coarse, None if valid is None else refit_lighting(image, mask, coarse, valid=valid)
+
+
 def _better_prior(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, focal: Optional[float],
                   principal_point: Optional[tuple], *, refit: bool, valid: bool,
                   forest_score: Optional[float] = None,
@@ -1197,8 +1205,9 @@ def _better_prior(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, foca
     already computed it). A blob-like object (a sphere above all) is the prior's case: there
     the forest's colour cue only adds error.
     """
-    coarse = coarse_normals(mask, focal=focal, principal_point=principal_point, config=silhouette).to(normals.dtype)
-    prior_sh = refit_lighting(image, mask, coarse, valid=valid) if refit else sh
+    coarse, prior_sh = _silhouette_prior(image, mask, normals.dtype, focal, principal_point, silhouette,
+                                         valid if refit else None)
+    prior_sh = sh if prior_sh is None else prior_sh
     if forest_score is None:
         forest_score = float(photometric_residual(normals, sh, image, mask)[0])
     prior_score = float(photometric_residual(coarse, prior_sh, image, mask)[0])
