@@ -338,7 +338,7 @@ def defaults_sweep(threads: int) -> None:
     """Our forest alone around the defaults (SfS-like synthetic data, 150k / 100k rows)."""
     train, test = sfs_like(150_000, seed=0), sfs_like(100_000, seed=1)
     VMFForest(**DEFAULTS).fit(*train)
-    sweep = [{}, {"n_trees": 4}, {"n_trees": 16}, {"max_depth": 10}, {"max_depth": 12}, {"max_depth": 16},
+    sweep = [{}, {"n_trees": 4}, {"n_trees": 8}, {"n_trees": 32}, {"max_depth": 10}, {"max_depth": 12}, {"max_depth": 16},
              {"max_features": 4}, {"max_features": 12}, {"n_bins": 32}, {"n_bins": 128},
              {"min_samples_leaf": 5}, {"min_samples_leaf": 20}]
     print(f"{threads} threads; load average {os.getloadavg()[0]:.1f}")

@@ -226,10 +226,11 @@ def _weighted_entropy(n: Tensor, sx: Tensor, sy: Tensor, sz: Tensor, max_kappa: 
 
 @dataclass
 class ForestConfig:
-    """Hyper-parameters of :class:`VMFForest` (defaults chosen in ``docs/forest.md``)."""
+    """Hyper-parameters of :class:`VMFForest` (defaults chosen in ``docs/forest.md``, the
+    number of trees for the whole method in ``docs/pipeline.md``)."""
 
     _target_: str = "sfs_torch.forest.VMFForest"
-    n_trees: int = 8
+    n_trees: int = 16
     max_depth: int = 14
     min_samples_leaf: int = 10
     max_features: Union[int, float] = 8
