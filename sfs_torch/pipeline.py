@@ -1184,13 +1184,13 @@ def _with_image_noise(cfg: PipelineConfig, image: Tensor, mask: Tensor) -> Pipel
 
 
 def _silhouette_prior(image: Tensor, mask: Tensor, dtype: torch.dtype, focal: Optional[float],
-                      principal_point: Optional[tuple], silhouette: Optional[SilhouetteConfig],
-                      valid: Optional[bool]) -> tuple:
+                      principal_point: Optional[tuple], silhouette: Optional[SilhouetteConfig], valid: bool,
+                      given: Optional[Tensor] = None) -> tuple:
     """``(normals, lighting)``: Eq. 10's coarse normals of each ``mask`` (B, 1, H, W) as
-    ``(B, 3, H, W)`` of ``dtype``, and the lighting (B, 3, 9) :func:`refit_lighting` fits to
-    them with ``valid`` (``None``: not fitted, for a given lighting)."""
+    ``(B, 3, H, W)`` of ``dtype``, and their lighting (B, 3, 9): the ``given`` one, or the
+    one :func:`refit_lighting` fits to them with ``valid``."""
     coarse = coarse_normals(mask, focal=focal, principal_point=principal_point, config=silhouette).to(dtype)
-    return coarse, None if valid is None else refit_lighting(image, mask, coarse, valid=valid)
+    return coarse, given if given is not None else refit_lighting(image, mask, coarse, valid=valid)
 
 
 def _better_prior(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, focal: Optional[float],
@@ -1205,9 +1205,8 @@ def _better_prior(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, foca
     already computed it). A blob-like object (a sphere above all) is the prior's case: there
     the forest's colour cue only adds error.
     """
-    coarse, prior_sh = _silhouette_prior(image, mask, normals.dtype, focal, principal_point, silhouette,
-                                         valid if refit else None)
-    prior_sh = sh if prior_sh is None else prior_sh
+    coarse, prior_sh = _silhouette_prior(image, mask, normals.dtype, focal, principal_point, silhouette, valid,
+                                         given=None if refit else sh)
     if forest_score is None:
         forest_score = float(photometric_residual(normals, sh, image, mask)[0])
     prior_score = float(photometric_residual(coarse, prior_sh, image, mask)[0])
