@@ -714,19 +714,17 @@ def _stencil(m: Tensor, dim: int) -> Tensor:
         return F.pad(m.narrow(dim, 0, n + k), _pad_arg(dim, -k, 0))
 
     has = {k: inside(k) for k in (-2, -1, 1, 2)}
-    central = has[1] & has[-1]
-    forward2 = ~central & has[1] & has[2]
-    backward2 = ~central & ~forward2 & has[-1] & has[-2]
-    forward1 = ~central & ~forward2 & ~backward2 & has[1]
-    backward1 = ~central & ~forward2 & ~backward2 & ~forward1 & has[-1]
-    rules = [  # where each rule applies, and its coefficients of offsets -2 .. 2
-        (central, (0.0, -0.5, 0.0, 0.5, 0.0)), (forward2, (0.0, 0.0, -1.5, 2.0, -0.5)),
-        (backward2, (0.5, -2.0, 1.5, 0.0, 0.0)), (forward1, (0.0, 0.0, -1.0, 1.0, 0.0)),
-        (backward1, (0.0, -1.0, 1.0, 0.0, 0.0)),
+    rules = [  # in order of preference: where each rule can apply, its coefficients of offsets -2 .. 2
+        (has[1] & has[-1], (0.0, -0.5, 0.0, 0.5, 0.0)), (has[1] & has[2], (0.0, 0.0, -1.5, 2.0, -0.5)),
+        (has[-1] & has[-2], (0.5, -2.0, 1.5, 0.0, 0.0)), (has[1], (0.0, 0.0, -1.0, 1.0, 0.0)),
+        (has[-1], (0.0, -1.0, 1.0, 0.0, 0.0)),
     ]
     coefficients = torch.zeros(len(_OFFSETS), *m.shape, device=m.device)
+    free = m.clone()  # mask pixels no earlier rule took
     for where, values in rules:
-        coefficients += torch.tensor(values, device=m.device)[:, None, None, None] * (where & m)
+        where = where & free
+        coefficients += torch.tensor(values, device=m.device)[:, None, None, None] * where
+        free &= ~where
     return coefficients
 
 
