@@ -604,7 +604,12 @@ class _Pyramid:
     def __init__(self, start: Tensor, n_levels: int, m: Tensor, focal, principal_point):
         h, w = start.shape[-2:]
         self.field_normals = _FieldNormals(m, focal, principal_point, start.dtype)
-        self.parameters = [start.clone(memory_format=torch.contiguous_format).requires_grad_(True)]
+        # An orthographic height is held in units of the image's larger side. In pixels its
+        # normals move about as much per unit as a perspective field's divided by the focal
+        # length, and L-BFGS's steps, shared with the lighting's coefficients, then hardly move
+        # the surface (docs/refine.md, "The orthographic height's unit").
+        self.unit = float(max(h, w)) if focal is None else 1.0
+        self.parameters = [(start / self.unit).clone(memory_format=torch.contiguous_format).requires_grad_(True)]
         # bilinear upsampling (``F.interpolate``, ``align_corners=False``) is separable: a
         # matrix product on each side, whose backward takes a fraction of interpolate's
         self.upsampling = []
@@ -618,7 +623,7 @@ class _Pyramid:
         out = self.parameters[0]
         for coarse, (rows, cols) in zip(self.parameters[1:], self.upsampling):
             out = out + rows @ coarse @ cols
-        return out
+        return out * self.unit
 
     def normals(self) -> Tensor:
         return self.field_normals(self.value())

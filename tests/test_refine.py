@@ -303,6 +303,21 @@ class TestRefinementLoss:
 
 
 class TestRefineShapeAndLighting:
+    @pytest.mark.parametrize("focal", [None, 300.0])
+    @pytest.mark.parametrize("seed", [3, 5])
+    def test_the_joint_refinement_fits_the_image_from_the_true_surface(self, focal, seed):
+        # the integrated true normals err at the steep rim; refined with the lighting free,
+        # the surface must come to explain the image in either camera. With an orthographic
+        # height held in pixels the residual stayed at 0.85-1.2x the start's (0.28-0.45x now)
+        view = render_normals(blobby_mesh(seed), torch.eye(3, dtype=torch.float64), 64, focal=focal)
+        normals, mask = view.normals[None].float(), view.mask[None]
+        sh = natural_lightings(0.8)["grace_cathedral"][None].float()
+        image = render_sh(normals, sh).clamp(0, 1) * mask
+        start = refine_shape_and_lighting(image, mask, normals, sh, focal=focal, config=RefineConfig(iterations=0))
+        out = refine_shape_and_lighting(image, mask, normals, sh, focal=focal)
+        before = float(photometric_residual(start.normals, sh, image, mask)[0])
+        assert float(photometric_residual(out.normals, out.lighting, image, mask)[0]) < 0.6 * before
+
     @pytest.mark.parametrize("model, bound", [("pixel", 3.0), ("surface", 1.5)])
     def test_known_lighting_recovers_the_shape(self, scene, model, bound):
         normals, mask, sh, image, start, _ = scene
@@ -379,8 +394,10 @@ class TestRefineShapeAndLighting:
         two = refine_shape_and_lighting(torch.cat([image, image.flip(-1)]), torch.cat([mask, mask.flip(-1)]),
                                         torch.cat([start, start.flip(-1)]), torch.cat([start_sh, start_sh]), config=cfg)
         one = refine_shape_and_lighting(image, mask, start, start_sh, config=cfg)
-        assert torch.allclose(two.normals[:1], one.normals, atol=1e-6)
-        assert torch.allclose(two.lighting[:1], one.lighting, atol=1e-6)
+        # each image is refined on its own; float32 rounding of the batched preparation
+        # (weights, rim normals) carried through ten L-BFGS steps reaches ~2e-6
+        assert torch.allclose(two.normals[:1], one.normals, atol=1e-5)
+        assert torch.allclose(two.lighting[:1], one.lighting, atol=1e-5)
 
     @pytest.mark.parametrize("model", ["pixel", "surface"])
     def test_strided_inputs_are_refined_like_contiguous_ones(self, scene, model):
@@ -438,11 +455,14 @@ class TestRefineShapeAndLighting:
         m = torch.ones(2, 37, 9, dtype=torch.bool)
         start = torch.randn(2, 37, 9, dtype=torch.float64)
         pyramid = refine_module._Pyramid(start, 5, m, None, None)
+        # an orthographic height is held in units of the larger side, and starts as given
+        assert pyramid.unit == 37
+        torch.testing.assert_close(pyramid.value(), start, atol=1e-12, rtol=0)
         generator = torch.Generator().manual_seed(0)
         with torch.no_grad():
             for level in pyramid.parameters[1:]:
                 level.copy_(torch.randn(level.shape, generator=generator, dtype=torch.float64))
-        expected = start + sum(torch.nn.functional.interpolate(level[:, None].detach(), size=(37, 9), mode="bilinear",
+        expected = start + pyramid.unit * sum(torch.nn.functional.interpolate(level[:, None].detach(), size=(37, 9), mode="bilinear",
                                                                align_corners=False)[:, 0]
                                for level in pyramid.parameters[1:])
         assert [tuple(p.shape[1:]) for p in pyramid.parameters] == [(37, 9), (18, 4), (9, 2), (4, 1), (2, 1)]
