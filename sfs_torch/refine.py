@@ -48,7 +48,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ._checks import check_finite, check_mask, check_same_size, check_shape, is_integer
+from ._checks import check_finite, check_mask, check_same_size, check_shape, is_integer, is_number
 from .integrability import _FieldNormals, _dx, _dy, _edge_masks, _unit, field_normals, integrate_normals
 from .lighting import render_sh
 from .natural_lighting import LightingPrior, lighting_prior_energy, load_lighting_prior
@@ -88,6 +88,13 @@ class RefineConfig:
         levels: ``model="surface"`` only: levels of the coarse-to-fine parameterisation
             (the field is a sum of bilinearly upsampled grids at 1, 1/2, ...,
             1/2^(levels-1) of the resolution), which lets L-BFGS fix smooth errors quickly.
+        height_unit: ``model="surface"``, orthographic only: the unit, in pixels, in which
+            L-BFGS holds the height (the energy and its minimum do not depend on it). In
+            pixels (1, the default) the steps it shares with the lighting's coefficients
+            hardly move the surface; about the image's side (256 at 256 px) lets the
+            joint refinement converge, as a perspective one does: better on exact
+            images, but under the realistic formation a sphere then loses its
+            silhouette prior (docs/refine.md, "The orthographic height's unit").
         skip_prior: in :func:`sfs_torch.estimate` with an estimated lighting, an image
             whose silhouette prior the prior check kept (``keep_prior``) keeps Eq. 10's
             normals and their lighting unrefined; its depth is their L2 integration.
@@ -105,6 +112,7 @@ class RefineConfig:
     lighting_weight: float = 0.01
     optimise_lighting: bool = True
     levels: int = 5
+    height_unit: float = 1.0
     skip_prior: bool = True
 
 
@@ -159,6 +167,8 @@ def check_refine_config(cfg: RefineConfig, prefix: str = "refine.") -> None:
             raise ValueError(f"{prefix}{name} must be >= 0, got {getattr(cfg, name)}")
     if not cfg.delta > 0:
         raise ValueError(f"{prefix}delta must be > 0, got {cfg.delta}")
+    if not is_number(cfg.height_unit, 0, strict=True):
+        raise ValueError(f"{prefix}height_unit must be a number > 0 (pixels), got {cfg.height_unit!r}")
 
 
 def rim_pixels(mask: Tensor) -> Tensor:
@@ -537,7 +547,8 @@ def _optimise(lighting, image, mask, normals, weights, rim_normals, focal, princ
             surface = integrate_normals(normals, mask, method="l2", weights=weights, focal=focal,
                                         principal_point=principal_point)
         start = surface.depth[:, 0] if focal is None else torch.log(torch.where(m, surface.depth[:, 0], 1.0))
-        variable = _Pyramid(torch.where(m, start, 0.0), cfg.levels, m, focal, principal_point)
+        variable = _Pyramid(torch.where(m, start, 0.0), cfg.levels, m, focal, principal_point,
+                            unit=cfg.height_unit if focal is None else 1.0)
         optimise_lighting = cfg.optimise_lighting
     # contiguous copies: L-BFGS flattens each parameter's gradient with a view, which a
     # strided input (a transposed lighting, permuted normals) would make fail
@@ -601,14 +612,10 @@ class _Pyramid:
     """A surface field as the sum of upsampled coarser levels: plain gradient steps on
     per-pixel values fix smooth errors very slowly, steps on coarse levels fix them at once."""
 
-    def __init__(self, start: Tensor, n_levels: int, m: Tensor, focal, principal_point):
+    def __init__(self, start: Tensor, n_levels: int, m: Tensor, focal, principal_point, unit: float = 1.0):
         h, w = start.shape[-2:]
         self.field_normals = _FieldNormals(m, focal, principal_point, start.dtype)
-        # An orthographic height is held in units of the image's larger side. In pixels its
-        # normals move about as much per unit as a perspective field's divided by the focal
-        # length, and L-BFGS's steps, shared with the lighting's coefficients, then hardly move
-        # the surface (docs/refine.md, "The orthographic height's unit").
-        self.unit = float(max(h, w)) if focal is None else 1.0
+        self.unit = unit  # the field is held divided by it (RefineConfig.height_unit)
         self.parameters = [(start / self.unit).clone(memory_format=torch.contiguous_format).requires_grad_(True)]
         # bilinear upsampling (``F.interpolate``, ``align_corners=False``) is separable: a
         # matrix product on each side, whose backward takes a fraction of interpolate's
