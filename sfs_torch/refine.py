@@ -612,7 +612,7 @@ class _Pyramid:
     """A surface field as the sum of upsampled coarser levels: plain gradient steps on
     per-pixel values fix smooth errors very slowly, steps on coarse levels fix them at once."""
 
-    def __init__(self, start: Tensor, n_levels: int, m: Tensor, focal, principal_point, unit: float = 1.0):
+    def __init__(self, start: Tensor, n_levels: int, m: Tensor, focal, principal_point, unit: float):
         h, w = start.shape[-2:]
         self.field_normals = _FieldNormals(m, focal, principal_point, start.dtype)
         self.unit = unit  # the field is held divided by it (RefineConfig.height_unit)

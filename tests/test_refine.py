@@ -460,9 +460,10 @@ class TestRefineShapeAndLighting:
         with torch.no_grad():
             for level in pyramid.parameters[1:]:
                 level.copy_(torch.randn(level.shape, generator=generator, dtype=torch.float64))
-        expected = start + pyramid.unit * sum(torch.nn.functional.interpolate(level[:, None].detach(), size=(37, 9), mode="bilinear",
-                                                               align_corners=False)[:, 0]
-                               for level in pyramid.parameters[1:])
+        upsampled = sum(torch.nn.functional.interpolate(level[:, None].detach(), size=(37, 9), mode="bilinear",
+                                                        align_corners=False)[:, 0]
+                        for level in pyramid.parameters[1:])
+        expected = start + pyramid.unit * upsampled
         assert [tuple(p.shape[1:]) for p in pyramid.parameters] == [(37, 9), (18, 4), (9, 2), (4, 1), (2, 1)]
         torch.testing.assert_close(pyramid.value(), expected, atol=1e-12, rtol=0)
 
