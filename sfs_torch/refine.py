@@ -616,7 +616,8 @@ class _Pyramid:
         h, w = start.shape[-2:]
         self.field_normals = _FieldNormals(m, focal, principal_point, start.dtype)
         self.unit = unit  # the field is held divided by it (RefineConfig.height_unit)
-        self.parameters = [(start / self.unit).clone(memory_format=torch.contiguous_format).requires_grad_(True)]
+        # the division makes the fresh leaf; contiguous() copies only a strided start
+        self.parameters = [(start / self.unit).contiguous().requires_grad_(True)]
         # bilinear upsampling (``F.interpolate``, ``align_corners=False``) is separable: a
         # matrix product on each side, whose backward takes a fraction of interpolate's
         self.upsampling = []
