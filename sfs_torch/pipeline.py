@@ -25,8 +25,9 @@
    refined again and kept where it explains the image at least as well; optionally
    first deepened by a factor, ``relief_scale``, ``relief_slope_power``; orthographic
    only, optionally a second such round from the corrected surface, the two surfaces
-   averaged, ``relief_rounds``, and the joint refinement again from the corrected surface
-   and the prior after it, ``relief_refinements``);
+   averaged, ``relief_rounds``; then, orthographic only, the joint refinement once more
+   from the corrected surface, its height in units of the image's side so that it
+   converges, ``relief_refinements``);
 7. optional integrability refinement (:mod:`sfs_torch.integrability`).
 """
 from __future__ import annotations
@@ -228,12 +229,17 @@ class PipelineConfig:
             orthographic images the relief stage corrected and the check did not return to
             the prior: how many times the joint refinement runs again from the corrected
             surface (pulled towards its normals by the final round's confidence, its lighting
-            fitted with it) and the prior corrects the result again. The prior fixes the
-            bas-relief transform the refinement cannot see; from the corrected surface the
-            refinement can fix some of what is left. 0 (the default) keeps the prior's
-            surface; each costs one refinement. Once helped the tuning sets of seven
-            validation shapes, not those of the other three, and was about even on the test
-            side (docs/pipeline.md).
+            fitted with it), its height held in ``relief_refinement_unit``. The prior fixes
+            the bas-relief transform the refinement cannot see; from the corrected surface a
+            refinement that converges fixes much of what is left. 1 (the default) costs one
+            refinement; 0 keeps the prior's surface. Measured in docs/pipeline.md.
+        relief_refinement_unit: the height unit of those refinements, in image sides
+            (``max(H, W)`` pixels; ``refine.height_unit``, in pixels, is the other
+            refinements'). About one side (the default) lets them converge; at 1 px they
+            barely move the surface (docs/refine.md, "The orthographic height's unit").
+        relief_refinement_prior: whether the learnt prior corrects the surface again
+            after each of those refinements (``False``, the default: the refined surface
+            is the estimate).
         relief_rounds: how many surfaces the relief stage (``relief_scale`` and
             ``relief_prior_passes``) averages, orthographic images only. Each round after
             the first starts from the previous round's corrected surface: the lighting
@@ -278,7 +284,9 @@ class PipelineConfig:
     relief_slope_power: float = 0.0
     relief_prior_passes: int = 2
     relief_prior_weights: Optional[str] = None
-    relief_refinements: int = 0
+    relief_refinements: int = 1
+    relief_refinement_unit: float = 1.0
+    relief_refinement_prior: bool = False
     relief_rounds: int = 1
     normal_rotation: str = "centroid"
     conv_samples_per_tree: int = 1
@@ -434,6 +442,8 @@ def _check_config(cfg: PipelineConfig) -> None:
         raise ValueError(f"relief_prior_passes must be an integer >= 0, got {cfg.relief_prior_passes!r}")
     if not is_integer(cfg.relief_refinements, 0):
         raise ValueError(f"relief_refinements must be an integer >= 0, got {cfg.relief_refinements!r}")
+    if not is_number(cfg.relief_refinement_unit, 0, strict=True):
+        raise ValueError(f"relief_refinement_unit must be a number > 0, got {cfg.relief_refinement_unit!r}")
     if not is_integer(cfg.relief_rounds, 1):
         raise ValueError(f"relief_rounds must be an integer >= 1, got {cfg.relief_rounds!r}")
     weights = cfg.relief_prior_weights
@@ -912,7 +922,8 @@ def _refined_relief(image: Tensor, mask: Tensor, surface: tuple, among: Tensor, 
     """``(depth, normals, lighting)`` of the batch whose ``surface`` is the relief stage's
     ``(depth, normals, lighting, confidence)``, its images in ``among`` (B,) bool put
     ``cfg.relief_refinements`` times through the joint refinement from their corrected
-    surface and the learnt prior (no relief scale) after it."""
+    surface, its height in ``cfg.relief_refinement_unit`` image sides, each followed by
+    the learnt prior (no relief scale) if ``cfg.relief_refinement_prior``."""
     depth, normals, sh, confidence = surface
     items = among.nonzero()[:, 0]
     if len(items) == 0:
@@ -921,9 +932,14 @@ def _refined_relief(image: Tensor, mask: Tensor, surface: tuple, among: Tensor, 
     m = mask[items]
     later = _prior_alone(cfg)
     every = torch.ones_like(items, dtype=torch.bool)
+    unit = cfg.relief_refinement_unit * max(mask.shape[-2:])
+    converging = replace(cfg, refine=replace(cfg.refine, height_unit=unit))
     for _ in range(cfg.relief_refinements):
-        refined = _refine(image[items], m, normals[items], sh[items], confidence[items], None, cfg, False, None, None)
-        depth[items], normals[items], sh[items] = _scaled_relief(image[items], m, *refined, every, later)
+        refined = _refine(image[items], m, normals[items], sh[items], confidence[items], None, converging, False, None,
+                          None)
+        if cfg.relief_refinement_prior:
+            refined = _scaled_relief(image[items], m, *refined, every, later)
+        depth[items], normals[items], sh[items] = refined
     return depth, normals, sh
 
 

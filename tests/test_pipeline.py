@@ -434,6 +434,8 @@ class TestPriorCheckTie:
 
 NO_RELIEF = {"relief_scale": 1.0, "relief_slope_power": 0, "relief_prior_passes": 0}  # the refined surface as it is
 DEEPER = {"relief_scale": 1.5, "relief_slope_power": 0, "relief_prior_passes": 0}
+# the relief stage's own surface: without the refinement after it (TestReliefRefinements)
+RELIEF_STAGE = dict(TINY, keep_prior=False, relief_refinements=0)
 
 
 class TestFinalRound:
@@ -493,7 +495,7 @@ def _judged_perspective_relief(monkeypatch, refined: torch.Tensor, before: torch
 class TestReliefScale:
     def test_an_estimated_orthographic_surface_is_deepened_and_its_lighting_refitted(self, scene):
         _, mask, _, image = scene
-        config = dict(TINY, keep_prior=False)
+        config = RELIEF_STAGE
         flat = sfs_torch.estimate(image, mask, config=dict(config, **NO_RELIEF), progress=False)
         deep = sfs_torch.estimate(image, mask, config=dict(config, **DEEPER), progress=False)
         torch.testing.assert_close(deep.depth, 1.5 * flat.depth)
@@ -509,7 +511,7 @@ class TestReliefScale:
 
     def test_the_scale_grows_with_the_surfaces_own_median_slope(self, scene):
         _, mask, _, image = scene
-        config = dict(TINY, keep_prior=False)
+        config = RELIEF_STAGE
         flat = sfs_torch.estimate(image, mask, config=dict(config, **NO_RELIEF), progress=False)
         deep = sfs_torch.estimate(image, mask, config=dict(config, relief_scale=1.2, relief_slope_power=0.5,
                                                            relief_prior_passes=0), progress=False)
@@ -531,7 +533,7 @@ class TestReliefScale:
                              ids=["after a scale", "the default"])
     def test_the_learnt_prior_corrects_the_surface_by_its_transform(self, scene, start, overrides):
         _, mask, _, image = scene
-        config = dict(TINY, keep_prior=False)
+        config = RELIEF_STAGE
         scaled = sfs_torch.estimate(image, mask, config=dict(config, **start), progress=False)
         corrected = sfs_torch.estimate(image, mask, config=dict(config, **overrides), progress=False)
         learnt = predict_relief(scaled.normals, mask, load_relief_net(), passes=2)
@@ -543,7 +545,7 @@ class TestReliefScale:
 
     def test_other_weights_replace_the_shipped_prior(self, scene, tmp_path):
         _, mask, _, image = scene
-        config = dict(TINY, keep_prior=False)
+        config = RELIEF_STAGE
         identity = tmp_path / "identity.npz"  # an untrained network returns the identity transform
         save_relief_net(ReliefNet(), str(identity), {})
         scaled = sfs_torch.estimate(image, mask, config=dict(config, **DEEPER), progress=False)
@@ -557,7 +559,7 @@ class TestReliefScale:
                                                                                    explains_better):
         _, mask, _, image = scene
         camera = {"focal": 60.0, "principal_point": (12.0, 20.0)}  # the object well off the optical axis
-        config = dict(TINY, keep_prior=False)
+        config = RELIEF_STAGE
         before = sfs_torch.estimate(image, mask, config=dict(config, **NO_RELIEF), progress=False, **camera)
         refinements = []
         refine = pipeline.refine_shape_and_lighting
@@ -588,7 +590,7 @@ class TestReliefScale:
     def test_each_perspective_image_of_a_batch_keeps_or_refuses_its_own_correction(self, scene, monkeypatch):
         _, mask, _, image = scene
         images, masks = torch.stack([image, image.flip(-1)]), torch.stack([mask, mask.flip(-1)])
-        config = dict(TINY, keep_prior=False)
+        config = RELIEF_STAGE
         before = sfs_torch.estimate(images, masks, focal=60.0, config=dict(config, **NO_RELIEF), progress=False)
         calls = _judged_perspective_relief(monkeypatch, torch.tensor([0.0, 1.0]), torch.tensor([0.5, 0.5]))
         after = sfs_torch.estimate(images, masks, focal=60.0, config=config, progress=False)
@@ -613,7 +615,7 @@ class TestReliefScale:
 class TestReliefRounds:
     def test_each_round_starts_from_the_last_corrected_surface_and_the_surfaces_are_averaged(self, scene, monkeypatch):
         _, mask, _, image = scene
-        config = dict(TINY, keep_prior=False)
+        config = RELIEF_STAGE
         one = sfs_torch.estimate(image, mask, config=config, progress=False)  # one round by default
         corrected, starts = [], []
         scaled_relief, final_round = pipeline._scaled_relief, pipeline._final_round
@@ -649,11 +651,11 @@ class TestReliefRounds:
 
 
 class TestReliefRefinements:
-    def test_the_refinement_starts_from_the_corrected_surface_and_the_prior_corrects_its_result(self, scene,
-                                                                                             monkeypatch):
+    @pytest.mark.parametrize("prior_after", [False, True])
+    def test_the_refinement_starts_from_the_corrected_surface_in_image_sides(self, scene, monkeypatch, prior_after):
         _, mask, _, image = scene
         config = dict(TINY, keep_prior=False)
-        without = sfs_torch.estimate(image, mask, config=config, progress=False)  # none by default
+        without = sfs_torch.estimate(image, mask, config=dict(config, relief_refinements=0), progress=False)
         corrected, refinements = [], []
         scaled_relief, refine = pipeline._scaled_relief, pipeline._refine
 
@@ -661,23 +663,28 @@ class TestReliefRefinements:
             corrected.append(scaled_relief(*args))
             return corrected[-1]
 
-        def recording_refine(image, mask, normals, sh, confidence, *args):
-            refinements.append((normals.clone(), sh.clone(), confidence.clone()))
-            return refine(image, mask, normals, sh, confidence, *args)
+        def recording_refine(image, mask, normals, sh, confidence, skip, cfg, *args):
+            refinements.append((normals.clone(), sh.clone(), confidence.clone(), cfg.refine.height_unit))
+            refinements[-1] += (refine(image, mask, normals, sh, confidence, skip, cfg, *args),)
+            return refinements[-1][-1]
 
         monkeypatch.setattr(pipeline, "_scaled_relief", recording_relief)
         monkeypatch.setattr(pipeline, "_refine", recording_refine)
-        once = sfs_torch.estimate(image, mask, config=dict(config, relief_refinements=1), progress=False)
-        # the joint refinement, the final round's, the one after the prior
-        assert len(corrected) == 2 and len(refinements) == 3
-        (_, first, first_sh), last = corrected
+        once = sfs_torch.estimate(image, mask, config=dict(config, relief_refinement_prior=prior_after),
+                                  progress=False)  # once by default
+        # the joint refinement, the final round's, the one after the prior (and the prior again after it)
+        assert len(corrected) == 1 + prior_after and len(refinements) == 3
+        _, first, first_sh = corrected[0]
         torch.testing.assert_close(first[0], without.normals)  # the prior's surface of relief_refinements=0
-        start, start_sh, confidence = refinements[2]
+        start, start_sh, confidence, unit, result = refinements[2]
+        assert [r[3] for r in refinements] == [1.0, 1.0, 64.0]  # the last one's height in image sides (64 px)
         torch.testing.assert_close(start, first)  # refined from it, pulled towards it
         torch.testing.assert_close(start_sh, first_sh)
         torch.testing.assert_close(confidence[0], once.confidence)
+        # the refined surface is the estimate, or the prior corrects it again
+        last = corrected[1] if prior_after else result
         for returned, expected in zip((once.depth, once.normals, once.lighting), last):
-            torch.testing.assert_close(returned, expected[0])  # the prior corrects the refined surface
+            torch.testing.assert_close(returned, expected[0])
         assert float(normal_metrics(once.normals[None], without.normals[None], mask[None]).median[0]) > 0.1
         assert "refinement after the relief prior" in once.timings
         assert "refinement after the relief prior" not in without.timings
@@ -692,8 +699,9 @@ class TestReliefRefinements:
 
         monkeypatch.setattr(pipeline, "_better_prior", lambda *args, **kwargs: None)  # the first check keeps none
         monkeypatch.setattr(pipeline, "_prior_explains_better", prior_always_better)
-        est = sfs_torch.estimate(image, mask, config=dict(TINY, relief_refinements=1), progress=False)
-        without = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False), progress=False)
+        est = sfs_torch.estimate(image, mask, config=TINY, progress=False)
+        without = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False, relief_refinements=0),
+                                     progress=False)
         # the check weighed the prior against the surface as the prior corrected it, and kept the prior
         torch.testing.assert_close(checked[0][0], without.normals)
         torch.testing.assert_close(est.normals, coarse_normals(mask[None])[0] * mask)
@@ -706,7 +714,7 @@ class TestReliefRefinements:
 def test_relief_options_leave_alone_what_the_relief_stage_does_not_run_on(scene, case, option, stage):
     _, mask, sh, image = scene
     kwargs = {"known lighting": {"lighting": sh}, "perspective": {"focal": 300.0}}[case]
-    config = dict(TINY, keep_prior=False)
+    config = dict(TINY, keep_prior=False, relief_refinements=0)
     without = sfs_torch.estimate(image, mask, config=config, progress=False, **kwargs)
     with_option = sfs_torch.estimate(image, mask, config=dict(config, **option), progress=False, **kwargs)
     assert torch.equal(with_option.normals, without.normals) and stage not in with_option.timings
@@ -809,6 +817,7 @@ BAD_CONFIGS = [
     ({"relief_slope_power": float("inf")}, r"^relief_slope_power must be a number, got inf"),
     ({"relief_prior_passes": -1}, r"^relief_prior_passes must be an integer >= 0, got -1"),
     ({"relief_refinements": -1}, r"^relief_refinements must be an integer >= 0, got -1"),
+    ({"relief_refinement_unit": 0.0}, r"^relief_refinement_unit must be a number > 0, got 0.0"),
     ({"relief_rounds": 0}, r"^relief_rounds must be an integer >= 1, got 0"),
     ({"relief_prior_weights": "no/such/prior.npz"},
      r"^relief_prior_weights must be null \(the shipped prior\) or the path .*got 'no/such/prior.npz': no such file"),
