@@ -22,8 +22,9 @@ is not the first four of ``--shapes 7``: to share one run between two processes,
 lightings (``--first-light``), not its shapes.
 
 ``--ablation`` runs :data:`ABLATION`: the paper's method, then each addition on top of
-the one before, then the default (the learnt relief prior without the relief scale
-before it, which it made redundant), and the default with the true lighting given.
+the one before, then the learnt relief prior without the relief scale before it (which it
+made redundant), the default (that, and a converging refinement after it), and the
+default with the true lighting given.
 """
 from __future__ import annotations
 
@@ -62,11 +63,12 @@ ABLATION = [
                                                     "relief_prior_passes": 0}),
     ("+ natural-lighting prior", {"final_round": False, "relief_prior_passes": 0}),
     ("+ final unjittered round", {"relief_prior_passes": 0}),
-    ("+ fixed relief scale", {"relief_scale": 1.1, "relief_prior_passes": 0}),
+    ("+ fixed relief scale", {"relief_scale": 1.1, "relief_prior_passes": 0, "relief_refinements": 0}),
     ("+ relief scale growing with the slope", {"relief_scale": 1.22, "relief_slope_power": 0.5,
-                                               "relief_prior_passes": 0}),
-    ("+ learnt relief prior", {"relief_scale": 1.22, "relief_slope_power": 0.5}),
-    ("the learnt relief prior alone, no relief scale (the default)", {}),
+                                               "relief_prior_passes": 0, "relief_refinements": 0}),
+    ("+ learnt relief prior", {"relief_scale": 1.22, "relief_slope_power": 0.5, "relief_refinements": 0}),
+    ("the learnt relief prior alone, no relief scale", {"relief_refinements": 0}),
+    ("+ a converging refinement after it (the default)", {}),
     ("the default, true lighting given", {"lighting": "known"}),
 ]
 

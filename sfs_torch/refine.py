@@ -95,6 +95,8 @@ class RefineConfig:
             joint refinement converge, as a perspective one does: better on exact
             images, but under the realistic formation a sphere then loses its
             silhouette prior (docs/refine.md, "The orthographic height's unit").
+            :func:`sfs_torch.estimate`'s refinement after the prior check sets its own
+            (``relief_refinement_unit``).
         skip_prior: in :func:`sfs_torch.estimate` with an estimated lighting, an image
             whose silhouette prior the prior check kept (``keep_prior``) keeps Eq. 10's
             normals and their lighting unrefined; its depth is their L2 integration.
