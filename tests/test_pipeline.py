@@ -664,9 +664,10 @@ class TestReliefRefinements:
             return corrected[-1]
 
         def recording_refine(image, mask, normals, sh, confidence, skip, cfg, *args):
-            refinements.append((normals.clone(), sh.clone(), confidence.clone(), cfg.refine.height_unit))
-            refinements[-1] += (refine(image, mask, normals, sh, confidence, skip, cfg, *args),)
-            return refinements[-1][-1]
+            start = (normals.clone(), sh.clone(), confidence.clone(), cfg.refine.height_unit)
+            result = refine(image, mask, normals, sh, confidence, skip, cfg, *args)
+            refinements.append((*start, result))
+            return result
 
         monkeypatch.setattr(pipeline, "_scaled_relief", recording_relief)
         monkeypatch.setattr(pipeline, "_refine", recording_refine)
@@ -676,7 +677,7 @@ class TestReliefRefinements:
         assert len(corrected) == 1 + prior_after and len(refinements) == 3
         _, first, first_sh = corrected[0]
         torch.testing.assert_close(first[0], without.normals)  # the prior's surface of relief_refinements=0
-        start, start_sh, confidence, unit, result = refinements[2]
+        start, start_sh, confidence, _, result = refinements[2]
         assert [r[3] for r in refinements] == [1.0, 1.0, 64.0]  # the last one's height in image sides (64 px)
         torch.testing.assert_close(start, first)  # refined from it, pulled towards it
         torch.testing.assert_close(start_sh, first_sh)
