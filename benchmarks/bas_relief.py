@@ -32,7 +32,10 @@ tried as hypotheses produced alike, with no ground truth: the default's normals 
 the lighting refitted to them (``refit_lighting``) and the joint refinement run from them
 (with the tilted normals as its prior). The tilt whose refinement ends at the lowest loss
 is picked, and so is the one with the lowest photometric residual. That measures whether
-the refinement's own energy can tell the tilt. With ``--lighting-prior W ...`` every
+the refinement's own energy can tell the tilt. With ``--converging`` the hypotheses are
+refined as the call refines its surface after the prior check, the height held in
+``relief_refinement_unit`` image sides (``refine.height_unit``, 1 px, hardly moves an
+orthographic surface). With ``--lighting-prior W ...`` every
 transform of the grid gets the lighting refitted to its normals and is scored by its
 photometric residual (relative to the untransformed normals') plus ``W`` times that
 lighting's natural-lighting prior energy; the best-scored transform is picked, per ``W``.
@@ -40,6 +43,7 @@ That measures whether the lighting prior can tell the transform.
 
     python benchmarks/bas_relief.py --shapes 7 --lights 3 --exposure 0.2
     python benchmarks/bas_relief.py --shapes 7 --lights 3 --exposure 0.2 --hypotheses
+    python benchmarks/bas_relief.py --shapes 7 --lights 3 --exposure 0.2 --hypotheses 0.25 --converging
     python benchmarks/bas_relief.py --side test --shapes 6 --lights 5 --degradation all
     python benchmarks/bas_relief.py --shapes 7 --lights 3 --exposure 0.2 --lighting-prior 0.1 0.3 1 3
     python benchmarks/bas_relief.py --shapes 10 --lights 8 --exposure 0.2 --light-seed 1 \
@@ -53,6 +57,7 @@ import json
 import os
 import statistics
 import time
+from dataclasses import replace
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -122,6 +127,8 @@ def main() -> None:
     parser.add_argument("--degradation", default="exact", choices=list(DEGRADATIONS))
     parser.add_argument("--hypotheses", type=float, nargs="?", const=0.5, default=None, metavar="T",
                         help="also try the tilts (mu, nu) in {-T, 0, T}^2 as refined hypotheses (default T: 0.5)")
+    parser.add_argument("--converging", action="store_true",
+                        help="refine the hypotheses with the height in relief_refinement_unit image sides")
     parser.add_argument("--lighting-prior", type=float, nargs="+", default=None, metavar="W",
                         help="also pick the transform by photometric residual + W x lighting prior energy, per W")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "bas_relief.json")
@@ -131,6 +138,8 @@ def main() -> None:
                      "their own exposure and orientation")
     if args.hypotheses is not None and not args.hypotheses > 0:
         parser.error(f"--hypotheses must be positive, got {args.hypotheses}")
+    if args.converging and args.hypotheses is None:
+        parser.error("--converging refines the --hypotheses: give --hypotheses too")
     if args.lighting_prior is not None and not all(w >= 0 for w in args.lighting_prior):
         parser.error(f"--lighting-prior weights must be >= 0, got {args.lighting_prior}")
     shapes = scene_shapes(args.shapes, args.side, sphere=False)
@@ -175,11 +184,13 @@ def main() -> None:
                 f" both {row['both']:6.2f} at {row['both_transform']} fitted {row['fitted']:6.2f}")
         if args.hypotheses is not None:
             row["hypotheses"] = []
+            unit = cfg.relief_refinement_unit * max(mask.shape[-2:]) if args.converging else cfg.refine.height_unit
+            hypothesis_refine = replace(cfg.refine, height_unit=unit)
             for mu, nu in itertools.product((-args.hypotheses, 0.0, args.hypotheses), repeat=2):
                 start_normals = bas_relief_normals(est.normals, 1.0, mu, nu) * mask
                 lighting = refit_lighting(image, mask, start_normals, valid=cfg.valid_refit).to(image.dtype)
                 refined = refine_shape_and_lighting(image, mask, start_normals, lighting, confidence=est.confidence,
-                                                    config=cfg.refine, silhouette=cfg.silhouette)
+                                                    config=hypothesis_refine, silhouette=cfg.silhouette)
                 row["hypotheses"].append({
                     "tilt": (mu, nu), "error": error(refined.normals), "loss": float(refined.loss_after[0]),
                     "photometric": float(photometric_residual(refined.normals, refined.lighting, image, mask)[0]),

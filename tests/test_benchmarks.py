@@ -29,6 +29,14 @@ def test_bas_relief_refuses_a_negative_lighting_prior_weight():
     assert "--lighting-prior weights must be >= 0, got [0.3, -1.0]" in done.stderr
 
 
+def test_bas_relief_refuses_converging_without_hypotheses():
+    # --converging says how the hypotheses are refined: alone it would be silently ignored
+    done = subprocess.run([sys.executable, str(BENCHMARKS / "bas_relief.py"), "--converging"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2
+    assert "--converging refines the --hypotheses" in done.stderr
+
+
 def _paired_bootstrap():
     sys.path.insert(0, str(BENCHMARKS))
     try:
