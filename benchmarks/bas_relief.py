@@ -57,7 +57,6 @@ import json
 import os
 import statistics
 import time
-from dataclasses import replace
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -76,7 +75,13 @@ from sfs_torch.geometry_db import load_database  # noqa: E402
 from sfs_torch.integrability import bas_relief_normals, median_slope  # noqa: E402
 from sfs_torch.metrics import normal_metrics  # noqa: E402
 from sfs_torch.natural_lighting import lighting_prior_energy, load_lighting_prior  # noqa: E402
-from sfs_torch.pipeline import RELIEF_REFERENCE_SLOPE, PipelineConfig, _relief_factor, resolve_config  # noqa: E402
+from sfs_torch.pipeline import (  # noqa: E402
+    RELIEF_REFERENCE_SLOPE,
+    PipelineConfig,
+    _converging_refine,
+    _relief_factor,
+    resolve_config,
+)
 from sfs_torch.reflectance_map import refit_lighting  # noqa: E402
 from sfs_torch.refine import photometric_residual, refine_shape_and_lighting  # noqa: E402
 from sfs_torch.relief_prior import (  # noqa: E402
@@ -184,8 +189,7 @@ def main() -> None:
                 f" both {row['both']:6.2f} at {row['both_transform']} fitted {row['fitted']:6.2f}")
         if args.hypotheses is not None:
             row["hypotheses"] = []
-            unit = cfg.relief_refinement_unit * max(mask.shape[-2:]) if args.converging else cfg.refine.height_unit
-            hypothesis_refine = replace(cfg.refine, height_unit=unit)
+            hypothesis_refine = _converging_refine(cfg, mask) if args.converging else cfg.refine
             for mu, nu in itertools.product((-args.hypotheses, 0.0, args.hypotheses), repeat=2):
                 start_normals = bas_relief_normals(est.normals, 1.0, mu, nu) * mask
                 lighting = refit_lighting(image, mask, start_normals, valid=cfg.valid_refit).to(image.dtype)

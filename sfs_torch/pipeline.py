@@ -932,8 +932,7 @@ def _refined_relief(image: Tensor, mask: Tensor, surface: tuple, among: Tensor, 
     m = mask[items]
     later = _prior_alone(cfg)
     every = torch.ones_like(items, dtype=torch.bool)
-    unit = cfg.relief_refinement_unit * max(mask.shape[-2:])
-    converging = replace(cfg, refine=replace(cfg.refine, height_unit=unit))
+    converging = replace(cfg, refine=_converging_refine(cfg, mask))
     for _ in range(cfg.relief_refinements):
         refined = _refine(image[items], m, normals[items], sh[items], confidence[items], None, converging, False, None,
                           None)
@@ -941,6 +940,12 @@ def _refined_relief(image: Tensor, mask: Tensor, surface: tuple, among: Tensor, 
             refined = _scaled_relief(image[items], m, *refined, every, later)
         depth[items], normals[items], sh[items] = refined
     return depth, normals, sh
+
+
+def _converging_refine(cfg: PipelineConfig, mask: Tensor) -> RefineConfig:
+    """``cfg.refine`` with the orthographic height held in ``cfg.relief_refinement_unit``
+    sides of the image of ``mask`` (..., H, W), as the refinement after the prior check holds it."""
+    return replace(cfg.refine, height_unit=cfg.relief_refinement_unit * max(mask.shape[-2:]))
 
 
 def _relief_rounds(image: Tensor, mask: Tensor, surface: tuple, among: Tensor, per_image: list,
