@@ -655,7 +655,7 @@ class TestReliefRefinements:
     def test_the_refinement_starts_from_the_corrected_surface_in_image_sides(self, scene, monkeypatch, prior_after):
         _, mask, _, image = scene
         config = dict(TINY, keep_prior=False)
-        without = sfs_torch.estimate(image, mask, config=dict(config, relief_refinements=0), progress=False)
+        without = sfs_torch.estimate(image, mask, config=RELIEF_STAGE, progress=False)
         corrected, refinements = [], []
         scaled_relief, refine = pipeline._scaled_relief, pipeline._refine
 
@@ -701,8 +701,7 @@ class TestReliefRefinements:
         monkeypatch.setattr(pipeline, "_better_prior", lambda *args, **kwargs: None)  # the first check keeps none
         monkeypatch.setattr(pipeline, "_prior_explains_better", prior_always_better)
         est = sfs_torch.estimate(image, mask, config=TINY, progress=False)
-        without = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False, relief_refinements=0),
-                                     progress=False)
+        without = sfs_torch.estimate(image, mask, config=RELIEF_STAGE, progress=False)
         # the check weighed the prior against the surface as the prior corrected it, and kept the prior
         torch.testing.assert_close(checked[0][0], without.normals)
         torch.testing.assert_close(est.normals, coarse_normals(mask[None])[0] * mask)
@@ -715,7 +714,7 @@ class TestReliefRefinements:
 def test_relief_options_leave_alone_what_the_relief_stage_does_not_run_on(scene, case, option, stage):
     _, mask, sh, image = scene
     kwargs = {"known lighting": {"lighting": sh}, "perspective": {"focal": 300.0}}[case]
-    config = dict(TINY, keep_prior=False, relief_refinements=0)
+    config = RELIEF_STAGE
     without = sfs_torch.estimate(image, mask, config=config, progress=False, **kwargs)
     with_option = sfs_torch.estimate(image, mask, config=dict(config, **option), progress=False, **kwargs)
     assert torch.equal(with_option.normals, without.normals) and stage not in with_option.timings
