@@ -25,11 +25,11 @@ from torch import Tensor
 from . import image_formation as formation_ops
 from ._checks import check_mask, check_same_size, check_shape, is_integer, is_number
 from .camera import pixel_grid
-from .geometry_db import DatabaseConfig, evaluation_shapes
+from .geometry_db import DatabaseConfig, _mesh_root, database_split, evaluation_shapes
 from .lighting import natural_lightings, render_sh, render_sphere, rotate_sh
 from .natural_lighting import environment_maps, random_camera_rotations
 from .rendering import NormalRender, random_view_rotations, render_normals
-from .shapes import Shape, normalize_mesh
+from .shapes import COLLECTIONS, Shape, collection_names, load_shape, normalize_mesh
 
 __all__ = ["FormationConfig", "DEGRADATIONS", "Scene", "evaluation_lightings", "validation_lightings",
            "scene_shapes", "view_visibility", "camera_gains", "form_image", "synthetic_scenes", "EVALUATION_LIGHTINGS"]
@@ -156,19 +156,47 @@ def validation_lightings(n: int, seed: int = 0, exposure: Optional[float] = None
 
 def scene_shapes(n: int, side: str = "test", database: DatabaseConfig = DatabaseConfig(),
                  sphere: bool = False) -> List[Shape]:
-    """``n`` shapes spread over one side of ``database``'s evaluation split (``"test"`` or ``"validation"``).
+    """``n`` shapes of one side of ``database``'s shapes.
+
+    ``"test"`` and ``"validation"`` are the two halves of its evaluation split, ``n`` spread
+    over each. ``"spare"`` is a larger tuning pool: the next ``n`` shapes the split would draw
+    for training after its ``n_shapes`` (by the same group weights), so neither its forests'
+    database nor, for the default database, the learnt relief prior has seen them.
 
     With ``sphere=True`` a unit sphere comes first (the shape Eq. 10's silhouette prior is exact for).
+
+    Raises:
+        ValueError: an unknown ``side``; ``n`` not an integer, or more shapes than the side holds.
     """
-    if side not in ("test", "validation"):
-        raise ValueError(f"side must be 'test' or 'validation', got {side!r}")
-    pool = evaluation_shapes(database)[0 if side == "test" else 1 :: 2]
-    if not is_integer(n, 0, len(pool)):
-        raise ValueError(f"n must be an integer in [0, {len(pool)}] on the {side} side, got {n!r}")
-    chosen = pool[:: max(1, len(pool) // max(n, 1))][:n]
+    if side not in SCENE_SIDES:
+        raise ValueError(f"side must be one of {', '.join(map(repr, SCENE_SIDES))}, got {side!r}")
+    if side == "spare":
+        chosen = _spare_shapes(n, database)
+    else:
+        pool = evaluation_shapes(database)[0 if side == "test" else 1 :: 2]
+        if not is_integer(n, 0, len(pool)):
+            raise ValueError(f"n must be an integer in [0, {len(pool)}] on the {side} side, got {n!r}")
+        chosen = pool[:: max(1, len(pool) // max(n, 1))][:n]
     if sphere:
         chosen = [Shape("sphere", normalize_mesh(trimesh.creation.icosphere(subdivisions=5)))] + chosen
     return chosen
+
+
+SCENE_SIDES = ("test", "validation", "spare")
+
+
+def _spare_shapes(n: int, database: DatabaseConfig) -> List[Shape]:
+    """The next ``n`` training shapes of ``database``'s split after its own (see :func:`scene_shapes`)."""
+    root = _mesh_root(database.collection)
+    groups = collection_names(database.collection, root)
+    weights = COLLECTIONS[database.collection]
+    available = sum(len(names) for group, names in groups.items() if weights[group] > 0) - database.n_shapes \
+        - database.n_eval_shapes
+    if not is_integer(n, 0, available):
+        raise ValueError(f"n must be an integer in [0, {available}] on the spare side, got {n!r}")
+    trained = set(database_split(database).train)
+    more = database_split(replace(database, n_shapes=database.n_shapes + n)).train
+    return [load_shape(name, root) for name in more if name not in trained]
 
 
 def view_visibility(view: NormalRender, mesh: trimesh.Trimesh, rotation: Tensor, config: FormationConfig) -> Tensor:

@@ -14,7 +14,7 @@ from sfs_torch.datasets import (
     validation_lightings,
     view_visibility,
 )
-from sfs_torch.geometry_db import DatabaseConfig, evaluation_shapes
+from sfs_torch.geometry_db import DatabaseConfig, database_split, evaluation_shapes
 from sfs_torch.lighting import render_sh
 from sfs_torch.natural_lighting import normalise_lighting
 from sfs_torch.rendering import render_normals
@@ -159,6 +159,17 @@ class TestSides:
         validation = [s.name for s in scene_shapes(2, "validation", cfg)]
         assert test == every[0::2] and validation == every[1::2]
 
+    def test_spare_shapes_are_neither_trained_on_nor_held_out(self):
+        cfg = DatabaseConfig(collection="blobby", n_shapes=3, n_views=2, resolution=48, samples_per_view=40,
+                             n_eval_shapes=4, seed=0)
+        split = database_split(cfg)
+        spare = [s.name for s in scene_shapes(5, "spare", cfg)]
+        assert len(set(spare)) == 5
+        assert not set(spare) & (set(split.train) | set(split.evaluation))
+        # the next shapes of the same draw: a longer pool starts with a shorter one
+        assert set(spare) < {s.name for s in scene_shapes(9, "spare", cfg)}
+        assert set(spare) == set(database_split(replace(cfg, n_shapes=8)).train) - set(split.train)
+
     @pytest.mark.parametrize("make, n, match", [
         (validation_lightings, -2, "n must be an integer >= 0, got -2"),
         (validation_lightings, 2.5, "n must be an integer >= 0, got 2.5"),
@@ -170,5 +181,10 @@ class TestSides:
             make(n)
 
     def test_bad_side(self):
-        with pytest.raises(ValueError, match="side must be"):
+        with pytest.raises(ValueError, match="side must be one of 'test', 'validation', 'spare', got 'train'"):
             scene_shapes(1, "train")
+
+    def test_too_many_spare_shapes(self):
+        cfg = DatabaseConfig(collection="blobby", n_shapes=3, n_eval_shapes=4)
+        with pytest.raises(ValueError, match=r"n must be an integer in \[0, \d+\] on the spare side, got 100000"):
+            scene_shapes(100_000, "spare", cfg)
