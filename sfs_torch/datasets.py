@@ -154,6 +154,9 @@ def validation_lightings(n: int, seed: int = 0, exposure: Optional[float] = None
     return out
 
 
+SCENE_SIDES = ("test", "validation", "spare")
+
+
 def scene_shapes(n: int, side: str = "test", database: DatabaseConfig = DatabaseConfig(),
                  sphere: bool = False) -> List[Shape]:
     """``n`` shapes of one side of ``database``'s shapes.
@@ -180,9 +183,6 @@ def scene_shapes(n: int, side: str = "test", database: DatabaseConfig = Database
     if sphere:
         chosen = [Shape("sphere", normalize_mesh(trimesh.creation.icosphere(subdivisions=5)))] + chosen
     return chosen
-
-
-SCENE_SIDES = ("test", "validation", "spare")
 
 
 def _spare_shapes(n: int, database: DatabaseConfig) -> List[Shape]:
