@@ -119,7 +119,8 @@ def against_default(errors: list, rows: list) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--side", choices=["validation", "test"], default="validation")
+    parser.add_argument("--side", choices=["validation", "spare", "test"], default="validation",
+                        help="as benchmarks/tune.py's --side")
     parser.add_argument("--shapes", type=int, default=7)
     parser.add_argument("--lights", type=int, default=3)
     parser.add_argument("--first-light", type=int, default=0)
@@ -149,7 +150,7 @@ def main() -> None:
         parser.error(f"--lighting-prior weights must be >= 0, got {args.lighting_prior}")
     shapes = scene_shapes(args.shapes, args.side, sphere=False)
     n = args.first_light + args.lights
-    lightings = (validation_lightings(n, seed=args.light_seed, exposure=args.exposure) if args.side == "validation"
+    lightings = (validation_lightings(n, seed=args.light_seed, exposure=args.exposure) if args.side != "test"
                  else evaluation_lightings(n))[args.first_light:]
     cfg = resolve_config({"training": {"cache_forests": "never"}, **json.loads(args.call)})
     database = load_database(cfg.database, progress=False)

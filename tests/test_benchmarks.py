@@ -73,6 +73,7 @@ def test_paired_bootstrap_refuses_unpaired_values():
     (["--first-shape", "-1"], "--first-shape and --first-light must be >= 0"),
     (["--first-shape", "8", "--shapes", "3"], "--first-shape + --shapes: n must be an integer in [0, 10] on the "
                                                "validation side, got 11"),
+    (["--side", "spare", "--shapes", "5000"], "on the spare side, got 5000"),
 ])
 def test_tune_refuses_shapes_the_side_does_not_have(arguments, message):
     done = subprocess.run([sys.executable, str(BENCHMARKS / "tune.py"), *arguments],
