@@ -29,7 +29,7 @@ from .geometry_db import DatabaseConfig, _mesh_root, database_split, evaluation_
 from .lighting import natural_lightings, render_sh, render_sphere, rotate_sh
 from .natural_lighting import environment_maps, random_camera_rotations
 from .rendering import NormalRender, random_view_rotations, render_normals
-from .shapes import COLLECTIONS, Shape, collection_names, load_shape, normalize_mesh
+from .shapes import COLLECTIONS, Shape, collection_names, drawable_count, load_shape, normalize_mesh
 
 __all__ = ["FormationConfig", "DEGRADATIONS", "Scene", "evaluation_lightings", "validation_lightings",
            "scene_shapes", "view_visibility", "camera_gains", "form_image", "synthetic_scenes", "EVALUATION_LIGHTINGS"]
@@ -188,10 +188,8 @@ def scene_shapes(n: int, side: str = "test", database: DatabaseConfig = Database
 def _spare_shapes(n: int, database: DatabaseConfig) -> List[Shape]:
     """The next ``n`` training shapes of ``database``'s split after its own (see :func:`scene_shapes`)."""
     root = _mesh_root(database.collection)
-    groups = collection_names(database.collection, root)
-    weights = COLLECTIONS[database.collection]
-    available = sum(len(names) for group, names in groups.items() if weights[group] > 0) - database.n_shapes \
-        - database.n_eval_shapes
+    drawable = drawable_count(collection_names(database.collection, root), COLLECTIONS[database.collection])
+    available = drawable - database.n_shapes - database.n_eval_shapes
     if not is_integer(n, 0, available):
         raise ValueError(f"n must be an integer in [0, {available}] on the spare side, got {n!r}")
     trained = set(database_split(database).train)

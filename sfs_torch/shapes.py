@@ -49,6 +49,7 @@ __all__ = [
     "collection_names",
     "load_shape",
     "split_shapes",
+    "drawable_count",
 ]
 
 log = logging.getLogger(__name__)
@@ -421,6 +422,11 @@ def load_shape(name: str, root: Optional[PathLike] = None) -> Shape:
     return Shape(name, normalize_mesh(raw))
 
 
+def drawable_count(groups: Dict[str, List[str]], weights: Dict[str, float]) -> int:
+    """How many shapes :func:`split_shapes` can draw from ``groups``: those of positive weight."""
+    return sum(len(names) for group, names in groups.items() if weights[group] > 0)
+
+
 def split_shapes(groups: Dict[str, List[str]], weights: Dict[str, float], n_train: int, n_eval: int,
                  seed: int) -> ShapeSplit:
     """Draw disjoint training and evaluation shapes, whole shapes only.
@@ -442,7 +448,7 @@ def split_shapes(groups: Dict[str, List[str]], weights: Dict[str, float], n_trai
         raise ValueError(f"weights must be finite numbers >= 0, got {bad}")
     if not any(weights[g] > 0 for g in groups):
         raise ValueError(f"weights must be positive for some group, got {weights}")
-    total = sum(len(v) for g, v in groups.items() if weights[g] > 0)
+    total = drawable_count(groups, weights)
     if n_train < 1 or n_eval < 0 or n_train + n_eval > total:
         raise ValueError(f"n_shapes + n_eval_shapes must be in [1, {total}], got {n_train} + {n_eval}")
     rng = np.random.default_rng(np.random.SeedSequence([0x5917, int(seed)]))
