@@ -66,10 +66,10 @@ import torch  # noqa: E402
 import sfs_torch  # noqa: E402
 from sfs_torch.datasets import (  # noqa: E402
     DEGRADATIONS,
-    evaluation_lightings,
+    SCENE_SIDES,
+    scene_lightings,
     scene_shapes,
     synthetic_scenes,
-    validation_lightings,
 )
 from sfs_torch.geometry_db import load_database  # noqa: E402
 from sfs_torch.integrability import bas_relief_normals, median_slope  # noqa: E402
@@ -119,16 +119,16 @@ def against_default(errors: list, rows: list) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--side", choices=["validation", "spare", "test"], default="validation",
+    parser.add_argument("--side", choices=SCENE_SIDES, default="validation",
                         help="as benchmarks/tune.py's --side")
     parser.add_argument("--shapes", type=int, default=7)
     parser.add_argument("--lights", type=int, default=3)
     parser.add_argument("--first-light", type=int, default=0)
     parser.add_argument("--light-seed", type=int, default=0,
-                        help="validation side: as benchmarks/tune.py's --light-seed")
+                        help="tuning sides: as benchmarks/tune.py's --light-seed")
     parser.add_argument("--call", default="{}", help="pipeline config overrides of the call, one JSON object")
     parser.add_argument("--exposure", type=float, default=None,
-                        help="validation side: as benchmarks/tune.py's --exposure")
+                        help="tuning sides: as benchmarks/tune.py's --exposure")
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--degradation", default="exact", choices=list(DEGRADATIONS))
     parser.add_argument("--hypotheses", type=float, nargs="?", const=0.5, default=None, metavar="T",
@@ -139,19 +139,18 @@ def main() -> None:
                         help="also pick the transform by photometric residual + W x lighting prior energy, per W")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "bas_relief.json")
     args = parser.parse_args()
-    if args.side == "test" and (args.exposure is not None or args.light_seed != 0):
-        parser.error("--exposure and --light-seed are for the validation side: the test side's R&H probes keep "
-                     "their own exposure and orientation")
     if args.hypotheses is not None and not args.hypotheses > 0:
         parser.error(f"--hypotheses must be positive, got {args.hypotheses}")
     if args.converging and args.hypotheses is None:
         parser.error("--converging refines the --hypotheses: give --hypotheses too")
     if args.lighting_prior is not None and not all(w >= 0 for w in args.lighting_prior):
         parser.error(f"--lighting-prior weights must be >= 0, got {args.lighting_prior}")
+    try:
+        lightings = scene_lightings(args.first_light + args.lights, args.side, seed=args.light_seed,
+                                    exposure=args.exposure)[args.first_light:]
+    except ValueError as error:
+        parser.error(f"--lights, --light-seed, --exposure: {error}")
     shapes = scene_shapes(args.shapes, args.side, sphere=False)
-    n = args.first_light + args.lights
-    lightings = (validation_lightings(n, seed=args.light_seed, exposure=args.exposure) if args.side != "test"
-                 else evaluation_lightings(n))[args.first_light:]
     cfg = resolve_config({"training": {"cache_forests": "never"}, **json.loads(args.call)})
     database = load_database(cfg.database, progress=False)
     grid = list(itertools.product(SCALES, TILTS, TILTS))

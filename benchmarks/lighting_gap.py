@@ -30,10 +30,10 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import sfs_torch  # noqa: E402
 from sfs_torch.datasets import (  # noqa: E402
-    evaluation_lightings,
+    SCENE_SIDES,
+    scene_lightings,
     scene_shapes,
     synthetic_scenes,
-    validation_lightings,
 )
 from sfs_torch.geometry_db import load_database  # noqa: E402
 from sfs_torch.integrability import integrate_normals  # noqa: E402
@@ -49,7 +49,7 @@ FOREST_ALONE = {"keep_prior": False, "refine": {"when": "never"}, "training": {"
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--side", choices=["validation", "test"], default="validation")
+    parser.add_argument("--side", choices=SCENE_SIDES, default="validation")
     parser.add_argument("--shapes", type=int, default=7)
     parser.add_argument("--lights", type=int, default=3)
     parser.add_argument("--resolution", type=int, default=256)
@@ -59,7 +59,7 @@ def main() -> None:
     if not all(0 <= a <= 1 for a in args.alphas):
         parser.error(f"--alphas must lie in [0, 1] (between the estimate and the truth), got {args.alphas}")
     shapes = scene_shapes(args.shapes, args.side)
-    lightings = validation_lightings(args.lights) if args.side == "validation" else evaluation_lightings(args.lights)
+    lightings = scene_lightings(args.lights, args.side)
     database = load_database(resolve_config({}).database, progress=False)
     rows = []
     for scene in synthetic_scenes(shapes, lightings, resolution=args.resolution):

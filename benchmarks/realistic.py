@@ -25,7 +25,7 @@ from pathlib import Path
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import sfs_torch  # noqa: E402
-from sfs_torch.datasets import DEGRADATIONS, evaluation_lightings, scene_shapes, synthetic_scenes, validation_lightings  # noqa: E402
+from sfs_torch.datasets import DEGRADATIONS, SCENE_SIDES, scene_lightings, scene_shapes, synthetic_scenes  # noqa: E402
 from sfs_torch.metrics import lmse, normal_metrics  # noqa: E402
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
 
@@ -38,14 +38,14 @@ def main() -> None:
     parser.add_argument("--lights", type=int, default=3)
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--focal", type=float, default=None)
-    parser.add_argument("--side", choices=["test", "validation"], default="test")
+    parser.add_argument("--side", choices=SCENE_SIDES, default="test")
     parser.add_argument("--degradations", nargs="*", default=list(DEGRADATIONS), choices=list(DEGRADATIONS))
     parser.add_argument("--config", default="{}", help="pipeline config overrides (JSON), applied to both calls")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "realistic.json")
     args = parser.parse_args()
     config = {"training": {"cache_forests": "never"}, **json.loads(args.config)}
     shapes = scene_shapes(args.shapes, args.side, sphere=True)
-    lights = evaluation_lightings(args.lights) if args.side == "test" else validation_lightings(args.lights)
+    lights = scene_lightings(args.lights, args.side)
     rows = []
     for degradation in args.degradations:
         for scene in synthetic_scenes(shapes, lights, resolution=args.resolution, focal=args.focal,

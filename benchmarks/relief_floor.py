@@ -35,7 +35,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import torch  # noqa: E402
 
-from sfs_torch.datasets import scene_shapes, synthetic_scenes  # noqa: E402
+from sfs_torch.datasets import SCENE_SIDES, scene_shapes, synthetic_scenes  # noqa: E402
 from sfs_torch.metrics import normal_metrics  # noqa: E402
 from sfs_torch.relief_prior import ReliefTransform, apply_relief, load_relief_net, predict_relief  # noqa: E402
 from sfs_torch.rendering import random_view_rotations, render_normals  # noqa: E402
@@ -76,7 +76,7 @@ def view_errors(truth: torch.Tensor, mask: torch.Tensor, transform: ReliefTransf
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--side", choices=["validation", "test"], default="validation")
+    parser.add_argument("--side", choices=SCENE_SIDES, default="validation")
     parser.add_argument("--shapes", type=int, default=10)
     parser.add_argument("--views", type=int, default=12, help="random views per shape")
     parser.add_argument("--resolution", type=int, default=None, help="default 128; 256 with --benchmark-views")

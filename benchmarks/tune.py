@@ -7,8 +7,8 @@ variant: ``"lighting": "known"`` among its overrides).
 ``--side spare`` scores a larger tuning pool instead: the next shapes the database split
 would draw for training (``scene_shapes(n, "spare")``: 10 mammal bones, 5 fly parts and 5
 urdf objects in its first 20), under the same Poly Haven lightings; neither the forests'
-database nor the learnt relief prior has seen them, and no choice before 2026-12-07 was
-made on them. ``--side test`` scores the test side instead (held-out shapes, R&H lightings): for
+database nor the learnt relief prior has seen them (the screens made on them are in
+docs/pipeline.md). ``--side test`` scores the test side instead (held-out shapes, R&H lightings): for
 reporting an ablation of choices already made, never for making one. Each variant after
 the first is compared with the first on the same images: the change of the median and of
 the mean error with their 90 % paired-bootstrap intervals (``_results.paired_bootstrap``;
@@ -44,10 +44,10 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import sfs_torch  # noqa: E402
 from sfs_torch.datasets import (  # noqa: E402
     DEGRADATIONS,
-    evaluation_lightings,
+    SCENE_SIDES,
+    scene_lightings,
     scene_shapes,
     synthetic_scenes,
-    validation_lightings,
 )
 from sfs_torch.metrics import lmse, normal_metrics  # noqa: E402
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
@@ -79,7 +79,7 @@ ABLATION = [
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--side", choices=["validation", "spare", "test"], default="validation",
+    parser.add_argument("--side", choices=SCENE_SIDES, default="validation",
                         help="validation: tune on it; spare: tune on a larger pool (shapes neither trained on nor "
                              "held out); test: report an ablation on it")
     parser.add_argument("--shapes", type=int, default=3)
@@ -90,9 +90,9 @@ def main() -> None:
     parser.add_argument("--first-light", type=int, default=0,
                         help="skip this many lightings first (the same lightings --lights would give after them)")
     parser.add_argument("--light-seed", type=int, default=0,
-                        help="validation side: the seed of the lightings' random orientations")
+                        help="tuning sides: the seed of the lightings' random orientations")
     parser.add_argument("--exposure", type=float, default=None,
-                        help="validation side: scale each lighting so that a lit sphere's 95th percentile is this "
+                        help="tuning sides: scale each lighting so that a lit sphere's 95th percentile is this "
                              "(validation_lightings' own is 0.9; the R&H probes sit at 0.10-0.35)")
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--focal", type=float, default=None)
@@ -103,24 +103,21 @@ def main() -> None:
     parser.add_argument("--ablation", action="store_true", help="run ABLATION instead of --variants")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "tune.json")
     args = parser.parse_args()
-    if args.side == "test" and (args.exposure is not None or args.light_seed != 0):
-        parser.error("--exposure and --light-seed are for the validation side: the test side's R&H probes keep "
-                     "their own orientation and exposure")
     variants = [overrides for _, overrides in ABLATION] if args.ablation else [json.loads(v) for v in args.variants]
     labels = [label for label, _ in ABLATION] if args.ablation else [json.dumps(v) for v in variants]
     if args.first_shape < 0 or args.first_light < 0:
         parser.error("--first-shape and --first-light must be >= 0")
+    try:
+        lightings = scene_lightings(args.first_light + args.lights, args.side, seed=args.light_seed,
+                                    exposure=args.exposure)[args.first_light:]
+    except ValueError as error:
+        parser.error(f"--lights, --light-seed, --exposure: {error}")
     try:
         shapes = scene_shapes(args.first_shape + args.shapes, args.side, sphere=not args.no_sphere)
     except ValueError as error:
         parser.error(f"--first-shape + --shapes: {error}")
     sphere = shapes[: len(shapes) - args.first_shape - args.shapes]  # the sphere comes first, when asked for
     shapes = sphere + shapes[len(sphere) + args.first_shape :]
-    n = args.first_light + args.lights
-    if args.side != "test":
-        lightings = validation_lightings(n, seed=args.light_seed, exposure=args.exposure)[args.first_light:]
-    else:
-        lightings = evaluation_lightings(n)[args.first_light:]
     rows = []
     for scene in synthetic_scenes(shapes, lightings, resolution=args.resolution,
                                   focal=args.focal, formation=DEGRADATIONS[args.degradation]):

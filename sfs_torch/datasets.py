@@ -31,7 +31,7 @@ from .natural_lighting import environment_maps, random_camera_rotations
 from .rendering import NormalRender, random_view_rotations, render_normals
 from .shapes import COLLECTIONS, Shape, collection_names, drawable_count, load_shape, normalize_mesh
 
-__all__ = ["FormationConfig", "DEGRADATIONS", "Scene", "evaluation_lightings", "validation_lightings",
+__all__ = ["FormationConfig", "DEGRADATIONS", "Scene", "evaluation_lightings", "validation_lightings", "scene_lightings",
            "scene_shapes", "view_visibility", "camera_gains", "form_image", "synthetic_scenes", "EVALUATION_LIGHTINGS"]
 
 EVALUATION_LIGHTINGS = ("grace_cathedral", "campus_sunset", "uffizi_gallery", "eucalyptus_grove",
@@ -155,6 +155,26 @@ def validation_lightings(n: int, seed: int = 0, exposure: Optional[float] = None
 
 
 SCENE_SIDES = ("test", "validation", "spare")
+
+
+def scene_lightings(n: int, side: str = "test", seed: int = 0,
+                    exposure: Optional[float] = None) -> List[Tuple[str, Tensor]]:
+    """The ``n`` lightings of one side: the R&H probes on ``"test"``
+    (:func:`evaluation_lightings`), Poly Haven maps on the tuning sides ``"validation"`` and
+    ``"spare"`` (:func:`validation_lightings` with ``seed`` and ``exposure``).
+
+    Raises:
+        ValueError: an unknown ``side``; ``seed`` or ``exposure`` on the test side, whose probes
+            keep their own orientation and exposure; a bad ``n`` or ``exposure``.
+    """
+    if side not in SCENE_SIDES:
+        raise ValueError(f"side must be one of {', '.join(map(repr, SCENE_SIDES))}, got {side!r}")
+    if side != "test":
+        return validation_lightings(n, seed=seed, exposure=exposure)
+    if seed != 0 or exposure is not None:
+        raise ValueError("seed and exposure are for the tuning sides (validation, spare): the test side's R&H "
+                         "probes keep their own orientation and exposure")
+    return evaluation_lightings(n)
 
 
 def scene_shapes(n: int, side: str = "test", database: DatabaseConfig = DatabaseConfig(),

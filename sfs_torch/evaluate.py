@@ -86,7 +86,9 @@ class SyntheticDatasetConfig:
             split of ``pipeline.database`` (never trained on).
         lights: how many lightings: the first R&H probes on the test side, Poly Haven
             lightings under random camera rotations on the validation side.
-        side: ``"test"`` (report on it) or ``"validation"`` (tune on it).
+        side: ``"test"`` (report on it), ``"validation"`` (tune on it) or ``"spare"`` (tune on
+            a larger pool: training-draw shapes neither the database nor the relief prior has
+            seen, ``shapes`` of them, under the validation side's lightings).
         degradation: a key of :data:`sfs_torch.datasets.DEGRADATIONS` (``exact`` is the paper's).
         focal: perspective focal length in pixels; ``None``: orthographic.
         resolution: image size in pixels.
@@ -534,14 +536,17 @@ def _check_int(value: Any, name: str, low: int, allow_none: bool = False) -> Non
 
 
 def _synthetic_cases(ds: DictConfig, pipeline: PipelineConfig) -> Cases:
-    from .datasets import evaluation_lightings, scene_shapes, synthetic_scenes, validation_lightings
+    from .datasets import SCENE_SIDES, scene_lightings, scene_shapes, synthetic_scenes
     from .geometry_db import database_split
 
-    if ds.side not in ("test", "validation"):
-        raise ValueError(f"dataset.side must be 'test' or 'validation', got {ds.side!r}")
+    if ds.side not in SCENE_SIDES:
+        raise ValueError(f"dataset.side must be one of {', '.join(SCENE_SIDES)}, got {ds.side!r}")
     if ds.degradation not in DEGRADATIONS:
         raise ValueError(f"dataset.degradation must be one of {', '.join(DEGRADATIONS)}, got {ds.degradation!r}")
     _check_int(ds.resolution, "dataset.resolution", 8)
+    if ds.side == "spare" and ds.shapes is None:
+        raise ValueError("dataset.shapes must be a number of shapes on the spare side (null takes a whole side "
+                         "of the evaluation split; the spare pool has no fixed size)")
     _check_int(ds.shapes, "dataset.shapes", 0, allow_none=True)
     _check_int(ds.lights_per_shape, "dataset.lights_per_shape", 1, allow_none=True)
     _check_int(ds.lights, "dataset.lights", 1)
@@ -552,13 +557,15 @@ def _synthetic_cases(ds: DictConfig, pipeline: PipelineConfig) -> Cases:
         raise ValueError(f"dataset.focal must be a positive focal length in pixels or null, got {ds.focal!r}")
     if ds.root is not None:
         log.warning("dataset=synthetic renders its scenes: dataset.root=%s is ignored", ds.root)
-    pool = database_split(pipeline.database).evaluation[0 if ds.side == "test" else 1 :: 2]
-    n = len(pool) if ds.shapes is None else ds.shapes
-    if n > len(pool):
-        raise ValueError(f"dataset.shapes must be at most {len(pool)} on the {ds.side} side of the database's "
-                         f"evaluation split, got {n}")
-    shapes = scene_shapes(n, ds.side, pipeline.database, sphere=ds.sphere)
-    lights = evaluation_lightings(ds.lights) if ds.side == "test" else validation_lightings(ds.lights)
+    if ds.shapes is None:
+        n = len(database_split(pipeline.database).evaluation[0 if ds.side == "test" else 1 :: 2])
+    else:
+        n = ds.shapes
+    try:
+        shapes = scene_shapes(n, ds.side, pipeline.database, sphere=ds.sphere)
+    except ValueError as error:
+        raise ValueError(f"dataset.shapes: {error}") from None
+    lights = scene_lightings(ds.lights, ds.side)
     per_shape = len(lights) if ds.lights_per_shape is None else ds.lights_per_shape
     focal = None if ds.focal is None else float(ds.focal)
     scenes = synthetic_scenes(shapes, lights, resolution=ds.resolution, focal=focal,

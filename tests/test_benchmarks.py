@@ -18,7 +18,7 @@ def test_validation_side_options_are_refused_on_the_test_side(script, arguments)
     done = subprocess.run([sys.executable, str(BENCHMARKS / script), "--side", "test", *arguments],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2
-    assert "for the validation side" in done.stderr
+    assert "for the tuning sides (validation, spare)" in done.stderr
 
 
 def test_bas_relief_refuses_a_negative_lighting_prior_weight():

@@ -9,6 +9,7 @@ from sfs_torch.datasets import (
     FormationConfig,
     evaluation_lightings,
     form_image,
+    scene_lightings,
     scene_shapes,
     synthetic_scenes,
     validation_lightings,
@@ -150,6 +151,24 @@ class TestSides:
     def test_bad_exposure(self, exposure):
         with pytest.raises(ValueError, match="exposure must be a number > 0"):
             validation_lightings(2, exposure=exposure)
+
+    def test_scene_lightings_by_side(self):
+        # the tuning sides share the Poly Haven maps (seed and exposure passed on); the test side is the probes
+        def same(a, b):
+            return [n for n, _ in a] == [n for n, _ in b] and all(torch.equal(x, y) for (_, x), (_, y) in zip(a, b))
+
+        assert same(scene_lightings(2, "test"), evaluation_lightings(2))
+        for side in ("validation", "spare"):
+            assert same(scene_lightings(3, side, seed=2, exposure=0.2), validation_lightings(3, seed=2, exposure=0.2))
+
+    @pytest.mark.parametrize("options, message", [
+        (dict(side="train"), "side must be one of 'test', 'validation', 'spare', got 'train'"),
+        (dict(side="test", exposure=0.2), r"seed and exposure are for the tuning sides \(validation, spare\)"),
+        (dict(side="test", seed=1), r"seed and exposure are for the tuning sides \(validation, spare\)"),
+    ])
+    def test_bad_scene_lightings(self, options, message):
+        with pytest.raises(ValueError, match=message):
+            scene_lightings(2, **options)
 
     def test_test_and_validation_shapes_are_disjoint(self):
         cfg = DatabaseConfig(collection="blobby", n_shapes=3, n_views=2, resolution=48, samples_per_view=40,

@@ -380,7 +380,9 @@ class TestCommandLine:
     @pytest.mark.parametrize("args, error, message", [
         (["dataset=folder", "dataset.root=missing"], FileNotFoundError, "dataset.root: no such folder 'missing'"),
         (["dataset=folder"], ValueError, "dataset=folder needs dataset.root=<folder>"),
-        (["dataset.side=train"], ValueError, "dataset.side must be 'test' or 'validation'"),
+        (["dataset.side=train"], ValueError, "dataset.side must be one of test, validation, spare, got 'train'"),
+        (["dataset.side=spare"], ValueError, "dataset.shapes must be a number of shapes on the spare side"),
+        (["dataset.shapes=3"], ValueError, r"dataset.shapes: n must be an integer in \[0, 1\] on the test side, got 3"),
         (["dataset.degradation=blur"], ValueError, "dataset.degradation must be one of exact, "),
         (["classical.iterations=-1"], ValueError, "classical.iterations must be an integer >= 0"),
     ])
@@ -394,6 +396,17 @@ class TestCommandLine:
         assert exited.value.code == 2
         assert capsys.readouterr().err == f"sfs-torch-eval: error: {caught.value}\n"
         assert not (tmp_path / "x" / "cases.csv").exists()
+
+    def test_spare_side_scores_the_spare_pool_under_tuning_lightings(self, tmp_path):
+        from sfs_torch.datasets import scene_shapes, validation_lightings
+        from sfs_torch.geometry_db import DatabaseConfig
+
+        run_eval([*TINY, "dataset=synthetic", "dataset.side=spare", "dataset.shapes=2", "dataset.lights=1",
+                  "dataset.resolution=32", "methods=[silhouette]", "figures=false", f"out={tmp_path / 'out'}"])
+        _, rows = read_csv(tmp_path / "out" / "cases.csv")
+        tiny = DatabaseConfig(collection="blobby", n_shapes=12, n_views=4, resolution=64, n_eval_shapes=2)
+        light = validation_lightings(1)[0][0]
+        assert [row["case"] for row in rows] == [f"{shape.name}|{light}" for shape in scene_shapes(2, "spare", tiny)]
 
     def test_sweep_writes_a_folder_per_job(self, tmp_path):
         args = ["-m", *TINY, "dataset.shapes=0", "dataset.lights=1", "dataset.sphere=true", "dataset.resolution=32",
