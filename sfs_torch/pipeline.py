@@ -930,14 +930,13 @@ def _refined_relief(image: Tensor, mask: Tensor, surface: tuple, among: Tensor, 
         return depth, normals, sh
     depth, normals, sh = depth.clone(), normals.clone(), sh.clone()
     m = mask[items]
-    later = _prior_alone(cfg)
-    every = torch.ones_like(items, dtype=torch.bool)
     converging = replace(cfg, refine=_converging_refine(cfg, mask))
     for _ in range(cfg.relief_refinements):
         refined = _refine(image[items], m, normals[items], sh[items], confidence[items], None, converging, False, None,
                           None)
         if cfg.relief_refinement_prior:
-            refined = _scaled_relief(image[items], m, *refined, every, later)
+            refined = _scaled_relief(image[items], m, *refined, torch.ones_like(items, dtype=torch.bool),
+                                     _prior_alone(cfg))
         depth[items], normals[items], sh[items] = refined
     return depth, normals, sh
 
