@@ -82,10 +82,11 @@ class SyntheticDatasetConfig:
     """Held-out shapes rendered under natural lightings (:mod:`sfs_torch.datasets`).
 
     Attributes:
-        shapes: how many shapes of ``side`` (``None``: all of them), from the evaluation
-            split of ``pipeline.database`` (never trained on).
+        shapes: how many shapes of ``side`` (``None``: all of them, on the test and
+            validation sides, which are the evaluation split of ``pipeline.database``, never
+            trained on).
         lights: how many lightings: the first R&H probes on the test side, Poly Haven
-            lightings under random camera rotations on the validation side.
+            lightings under random camera rotations on the tuning sides.
         side: ``"test"`` (report on it), ``"validation"`` (tune on it) or ``"spare"`` (tune on
             a larger pool: training-draw shapes neither the database nor the relief prior has
             seen, ``shapes`` of them, under the validation side's lightings).
