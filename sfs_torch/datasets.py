@@ -177,12 +177,12 @@ def scene_lightings(n: int, side: str = "test", seed: int = 0,
     return evaluation_lightings(n)
 
 
-def scene_shapes(n: int, side: str = "test", database: DatabaseConfig = DatabaseConfig(),
+def scene_shapes(n: Optional[int], side: str = "test", database: DatabaseConfig = DatabaseConfig(),
                  sphere: bool = False) -> List[Shape]:
     """``n`` shapes of one side of ``database``'s shapes.
 
     ``"test"`` and ``"validation"`` are the two halves of its evaluation split, ``n`` spread
-    over each. ``"spare"`` is a larger tuning pool: the next ``n`` shapes the split would draw
+    over each (``None``: all of the half). ``"spare"`` is a larger tuning pool: the next ``n`` shapes the split would draw
     for training after its ``n_shapes`` (by the same group weights), so neither its forests'
     database nor, for the default database, the learnt relief prior has seen them.
 
@@ -197,6 +197,7 @@ def scene_shapes(n: int, side: str = "test", database: DatabaseConfig = Database
         chosen = _spare_shapes(n, database)
     else:
         pool = evaluation_shapes(database)[0 if side == "test" else 1 :: 2]
+        n = len(pool) if n is None else n
         if not is_integer(n, 0, len(pool)):
             raise ValueError(f"n must be an integer in [0, {len(pool)}] on the {side} side, got {n!r}")
         chosen = pool[:: max(1, len(pool) // max(n, 1))][:n]

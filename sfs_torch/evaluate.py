@@ -538,7 +538,6 @@ def _check_int(value: Any, name: str, low: int, allow_none: bool = False) -> Non
 
 def _synthetic_cases(ds: DictConfig, pipeline: PipelineConfig) -> Cases:
     from .datasets import SCENE_SIDES, scene_lightings, scene_shapes, synthetic_scenes
-    from .geometry_db import database_split
 
     if ds.side not in SCENE_SIDES:
         raise ValueError(f"dataset.side must be one of {', '.join(SCENE_SIDES)}, got {ds.side!r}")
@@ -558,12 +557,8 @@ def _synthetic_cases(ds: DictConfig, pipeline: PipelineConfig) -> Cases:
         raise ValueError(f"dataset.focal must be a positive focal length in pixels or null, got {ds.focal!r}")
     if ds.root is not None:
         log.warning("dataset=synthetic renders its scenes: dataset.root=%s is ignored", ds.root)
-    if ds.shapes is None:
-        n = len(database_split(pipeline.database).evaluation[0 if ds.side == "test" else 1 :: 2])
-    else:
-        n = ds.shapes
     try:
-        shapes = scene_shapes(n, ds.side, pipeline.database, sphere=ds.sphere)
+        shapes = scene_shapes(ds.shapes, ds.side, pipeline.database, sphere=ds.sphere)
     except ValueError as error:
         raise ValueError(f"dataset.shapes: {error}") from None
     lights = scene_lightings(ds.lights, ds.side)

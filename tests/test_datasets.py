@@ -177,6 +177,8 @@ class TestSides:
         test = [s.name for s in scene_shapes(2, "test", cfg)]
         validation = [s.name for s in scene_shapes(2, "validation", cfg)]
         assert test == every[0::2] and validation == every[1::2]
+        # None: the whole half (sfs-torch-eval's dataset.shapes=null)
+        assert [s.name for s in scene_shapes(None, "validation", cfg)] == every[1::2]
 
     def test_spare_shapes_are_neither_trained_on_nor_held_out(self):
         cfg = DatabaseConfig(collection="blobby", n_shapes=3, n_views=2, resolution=48, samples_per_view=40,
