@@ -18,8 +18,8 @@
 6. photometric refinement (:mod:`sfs_torch.refine`, not in the paper): the normals
    fitted to the image, per pixel under a given lighting, and an estimated lighting
    refined jointly with an integrable surface (``refine.when``, default ``"always"``),
-   then once more from an unjittered forest trained for the refined lighting
-   (``final_round``), and an estimated surface corrected by the bas-relief transform a
+   then once more from a forest trained for the refined lighting with half the jitter
+   (``final_round``, ``final_round_jitter``), and an estimated surface corrected by the bas-relief transform a
    learnt prior on shapes in their poses reads off it (:mod:`sfs_torch.relief_prior`,
    ``relief_prior_passes``, not in the paper; a perspective one in its centroid's frame,
    refined again and kept where it explains the image at least as well; optionally
@@ -196,10 +196,17 @@ class PipelineConfig:
             prior and no sphere (docs/pipeline.md). One more joint refinement for each
             near tie; ``None``: never.
         final_round: with an estimated lighting, after the joint refinement: the
-            lighting refitted to the refined normals, a forest trained for it without the
-            brightness/colour jitter, and the joint refinement again from that forest's
-            normals, whose surface, lighting and confidence are returned (one more forest
-            and refinement; measured in docs/pipeline.md).
+            lighting refitted to the refined normals, a forest trained for it with
+            ``final_round_jitter`` of the brightness/colour jitter, and the joint
+            refinement again from that forest's normals, whose surface, lighting and
+            confidence are returned (one more forest and refinement; measured in
+            docs/pipeline.md).
+        final_round_jitter: the final round's forest's jitter, as a fraction of
+            ``training.brightness_jitter`` and ``training.colour_jitter``: the refined
+            lighting is nearer the truth than the first estimate but still off, so its
+            forest keeps some tolerance of it. 0 trains it unjittered, as for a given
+            lighting (the default until 2026-12-07: 0.5 measured better on shapes no
+            other choice had used, docs/pipeline.md).
         relief_scale: with an estimated lighting, after the joint refinement (and
             ``final_round``): the refined surface's depth is multiplied
             by a factor, ``relief_scale`` for a surface of median slope 0.8 (below), a
@@ -243,7 +250,7 @@ class PipelineConfig:
         relief_rounds: how many surfaces the relief stage (``relief_scale`` and
             ``relief_prior_passes``) averages, orthographic images only. Each round after
             the first starts from the previous round's corrected surface: the lighting
-            refitted to it, the final round's unjittered forest and refinement, then the
+            refitted to it, the final round's forest and refinement, then the
             learnt prior again (the
             relief scale deepens the first round's surface only). The estimate is the mean
             of the rounds' surfaces (their depths; the normals of their mean slopes), its
@@ -280,6 +287,7 @@ class PipelineConfig:
     prior_check_highlight: Optional[float] = 0.1
     prior_check_tie: Optional[float] = 0.5
     final_round: bool = True
+    final_round_jitter: float = 0.5
     relief_scale: float = 1.0
     relief_slope_power: float = 0.0
     relief_prior_passes: int = 2
@@ -438,6 +446,8 @@ def _check_config(cfg: PipelineConfig) -> None:
         raise ValueError(f"relief_scale must be a number > 0, got {cfg.relief_scale!r}")
     if not is_number(cfg.relief_slope_power):
         raise ValueError(f"relief_slope_power must be a number, got {cfg.relief_slope_power!r}")
+    if not is_number(cfg.final_round_jitter, 0):
+        raise ValueError(f"final_round_jitter must be a number >= 0, got {cfg.final_round_jitter!r}")
     if not is_integer(cfg.relief_prior_passes, 0):
         raise ValueError(f"relief_prior_passes must be an integer >= 0, got {cfg.relief_prior_passes!r}")
     if not is_integer(cfg.relief_refinements, 0):
@@ -833,8 +843,10 @@ def _final_round(image: Tensor, mask: Tensor, normals: Tensor, rows: Tensor, db:
     batch axis) after ``cfg.final_round`` (see :class:`PipelineConfig`), from its refined ``normals``."""
     with timer("lighting refinement"):
         sh = refit_lighting(image, mask, normals, valid=cfg.valid_refit)[0].to(normals.dtype)
-    unjittered = replace(cfg, refine_rounds=0, training=replace(cfg.training, brightness_jitter=0.0, colour_jitter=0.0))
-    found = _forest_rounds(image, mask, rows, sh, db, unjittered, timer, given=False, centroid=centroid, focal=focal,
+    jitter = cfg.final_round_jitter
+    final = replace(cfg, refine_rounds=0, training=replace(cfg.training, brightness_jitter=jitter * cfg.training.brightness_jitter,
+                                                           colour_jitter=jitter * cfg.training.colour_jitter))
+    found = _forest_rounds(image, mask, rows, sh, db, final, timer, given=False, centroid=centroid, focal=focal,
                            principal_point=principal_point)
     depth, normals, sh = _refine(image, mask, found.normals, found.lighting[None], found.confidence, None, cfg,
                                  False, focal, principal_point)

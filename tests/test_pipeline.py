@@ -439,7 +439,7 @@ RELIEF_STAGE = dict(TINY, keep_prior=False, relief_refinements=0)
 
 
 class TestFinalRound:
-    def test_it_refines_an_unjittered_forest_trained_for_the_refined_lighting(self, scene, monkeypatch):
+    def test_it_refines_a_forest_with_part_of_the_jitter_trained_for_the_refined_lighting(self, scene, monkeypatch):
         # keep_prior=false: the sphere's prior would be kept, and a kept prior is not refined
         normals, mask, sh, image = scene
         rounds, refinements = [], []
@@ -457,14 +457,18 @@ class TestFinalRound:
         monkeypatch.setattr(pipeline, "refine_shape_and_lighting", recording_refine)
         est = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False, **NO_RELIEF), progress=False)
         assert len(rounds) == 2 and len(refinements) == 2
-        (_, jitter, _, refits), (last_sh, *unjittered) = rounds
-        assert jitter > 0 and refits == 1  # the call's own forests
-        assert unjittered == [0.0, 0.0, 0]
+        (_, jitter, colour, refits), (last_sh, *final) = rounds
+        assert jitter == 0.3 and colour == 0.05 and refits == 1  # the call's own forests
+        assert final == [0.5 * 0.3, 0.5 * 0.05, 0]  # final_round_jitter=0.5 of it, no refit round
         torch.testing.assert_close(last_sh, refit_lighting(image[None], mask[None], refinements[0].normals)[0])
         torch.testing.assert_close(est.normals, refinements[1].normals[0])
         torch.testing.assert_close(est.lighting, refinements[1].lighting[0])
         torch.testing.assert_close(est.depth, refinements[1].depth[0])
         assert "final round" in est.timings
+        rounds.clear()
+        sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False, final_round_jitter=0.0, **NO_RELIEF),
+                           progress=False)
+        assert [r[1:] for r in rounds] == [(0.3, 0.05, 1), (0.0, 0.0, 0)]  # unjittered, as for a given lighting
         rounds.clear(), refinements.clear()
         off = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False, final_round=False, **NO_RELIEF),
                                  progress=False)
@@ -815,6 +819,7 @@ BAD_CONFIGS = [
     ({"relief_scale": 0.0}, r"^relief_scale must be a number > 0, got 0.0"),
     ({"relief_scale": "deep"}, r"'deep' .*could not be converted to Float\s+full_key: relief_scale"),
     ({"relief_slope_power": float("inf")}, r"^relief_slope_power must be a number, got inf"),
+    ({"final_round_jitter": -0.5}, r"^final_round_jitter must be a number >= 0, got -0.5"),
     ({"relief_prior_passes": -1}, r"^relief_prior_passes must be an integer >= 0, got -1"),
     ({"relief_refinements": -1}, r"^relief_refinements must be an integer >= 0, got -1"),
     ({"relief_refinement_unit": 0.0}, r"^relief_refinement_unit must be a number > 0, got 0.0"),
