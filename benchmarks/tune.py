@@ -66,7 +66,7 @@ ABLATION = [
     ("+ joint refinement of surface and lighting", {"refine": {"lighting_weight": 0.0}, "final_round": False,
                                                     "relief_prior_passes": 0}),
     ("+ natural-lighting prior", {"final_round": False, "relief_prior_passes": 0}),
-    ("+ final round (half the jitter since 2026-12-07)", {"relief_prior_passes": 0}),
+    ("+ final unjittered round", {"relief_prior_passes": 0}),
     ("+ fixed relief scale", {"relief_scale": 1.1, "relief_prior_passes": 0, "relief_refinements": 0}),
     ("+ relief scale growing with the slope", {"relief_scale": 1.22, "relief_slope_power": 0.5,
                                                "relief_prior_passes": 0, "relief_refinements": 0}),

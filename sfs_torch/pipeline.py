@@ -15,19 +15,19 @@
    an addition to the paper that measurably helps, see docs/pipeline.md);
 5. perspective: the normals, predicted in the object's orthographic frame, rotated
    into the camera frame (:mod:`sfs_torch.camera`);
-6. photometric refinement (:mod:`sfs_torch.refine`, not in the paper): the normals
-   fitted to the image, per pixel under a given lighting, and an estimated lighting
-   refined jointly with an integrable surface (``refine.when``, default ``"always"``),
-   then once more from a forest trained for the refined lighting with half the jitter
-   (``final_round``, ``final_round_jitter``), and an estimated surface corrected by the bas-relief transform a
-   learnt prior on shapes in their poses reads off it (:mod:`sfs_torch.relief_prior`,
-   ``relief_prior_passes``, not in the paper; a perspective one in its centroid's frame,
-   refined again and kept where it explains the image at least as well; optionally
-   first deepened by a factor, ``relief_scale``, ``relief_slope_power``; orthographic
-   only, optionally a second such round from the corrected surface, the two surfaces
-   averaged, ``relief_rounds``; then, orthographic only, the joint refinement once more
-   from the corrected surface, its height in units of the image's side so that it
-   converges, ``relief_refinements``);
+6. photometric refinement (:mod:`sfs_torch.refine`, not in the paper): the normals fitted
+   to the image, per pixel under a given lighting, and an estimated lighting refined
+   jointly with an integrable surface (``refine.when``, default ``"always"``), then once
+   more from an unjittered forest trained for the refined lighting (``final_round``;
+   ``final_round_jitter`` keeps part of the jitter), and an estimated surface corrected
+   by the bas-relief transform a learnt prior on shapes in their poses reads off it
+   (:mod:`sfs_torch.relief_prior`, ``relief_prior_passes``, not in the paper; a
+   perspective one in its centroid's frame, refined again and kept where it explains the
+   image at least as well; optionally first deepened by a factor, ``relief_scale``,
+   ``relief_slope_power``; orthographic only, optionally a second such round from the
+   corrected surface, the two surfaces averaged, ``relief_rounds``; then, orthographic
+   only, the joint refinement once more from the corrected surface, its height in units
+   of the image's side so that it converges, ``relief_refinements``);
 7. optional integrability refinement (:mod:`sfs_torch.integrability`).
 """
 from __future__ import annotations
@@ -196,17 +196,16 @@ class PipelineConfig:
             prior and no sphere (docs/pipeline.md). One more joint refinement for each
             near tie; ``None``: never.
         final_round: with an estimated lighting, after the joint refinement: the
-            lighting refitted to the refined normals, a forest trained for it with
-            ``final_round_jitter`` of the brightness/colour jitter, and the joint
+            lighting refitted to the refined normals, a forest trained for it without
+            the brightness/colour jitter (``final_round_jitter``), and the joint
             refinement again from that forest's normals, whose surface, lighting and
             confidence are returned (one more forest and refinement; measured in
             docs/pipeline.md).
         final_round_jitter: the final round's forest's jitter, as a fraction of
-            ``training.brightness_jitter`` and ``training.colour_jitter``: the refined
-            lighting is nearer the truth than the first estimate but still off, so its
-            forest keeps some tolerance of it. 0 trains it unjittered, as for a given
-            lighting (the default until 2026-12-07: 0.5 measured better on shapes no
-            other choice had used, docs/pipeline.md).
+            ``training.brightness_jitter`` and ``training.colour_jitter``. 0 (the
+            default) trains it unjittered, as for a given lighting. 0.5 helped where the
+            refined lighting stays far off (shapes no choice had used, under the tuning
+            lightings) and made the held-out test images worse (docs/pipeline.md).
         relief_scale: with an estimated lighting, after the joint refinement (and
             ``final_round``): the refined surface's depth is multiplied
             by a factor, ``relief_scale`` for a surface of median slope 0.8 (below), a
@@ -287,7 +286,7 @@ class PipelineConfig:
     prior_check_highlight: Optional[float] = 0.1
     prior_check_tie: Optional[float] = 0.5
     final_round: bool = True
-    final_round_jitter: float = 0.5
+    final_round_jitter: float = 0.0
     relief_scale: float = 1.0
     relief_slope_power: float = 0.0
     relief_prior_passes: int = 2
@@ -843,9 +842,9 @@ def _final_round(image: Tensor, mask: Tensor, normals: Tensor, rows: Tensor, db:
     batch axis) after ``cfg.final_round`` (see :class:`PipelineConfig`), from its refined ``normals``."""
     with timer("lighting refinement"):
         sh = refit_lighting(image, mask, normals, valid=cfg.valid_refit)[0].to(normals.dtype)
-    jitter = cfg.final_round_jitter
-    final = replace(cfg, refine_rounds=0, training=replace(cfg.training, brightness_jitter=jitter * cfg.training.brightness_jitter,
-                                                           colour_jitter=jitter * cfg.training.colour_jitter))
+    part, training = cfg.final_round_jitter, cfg.training
+    final = replace(cfg, refine_rounds=0, training=replace(training, brightness_jitter=part * training.brightness_jitter,
+                                                           colour_jitter=part * training.colour_jitter))
     found = _forest_rounds(image, mask, rows, sh, db, final, timer, given=False, centroid=centroid, focal=focal,
                            principal_point=principal_point)
     depth, normals, sh = _refine(image, mask, found.normals, found.lighting[None], found.confidence, None, cfg,

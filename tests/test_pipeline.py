@@ -439,7 +439,7 @@ RELIEF_STAGE = dict(TINY, keep_prior=False, relief_refinements=0)
 
 
 class TestFinalRound:
-    def test_it_refines_a_forest_with_part_of_the_jitter_trained_for_the_refined_lighting(self, scene, monkeypatch):
+    def test_it_refines_an_unjittered_forest_trained_for_the_refined_lighting(self, scene, monkeypatch):
         # keep_prior=false: the sphere's prior would be kept, and a kept prior is not refined
         normals, mask, sh, image = scene
         rounds, refinements = [], []
@@ -459,16 +459,16 @@ class TestFinalRound:
         assert len(rounds) == 2 and len(refinements) == 2
         (_, jitter, colour, refits), (last_sh, *final) = rounds
         assert jitter == 0.3 and colour == 0.05 and refits == 1  # the call's own forests
-        assert final == [0.5 * 0.3, 0.5 * 0.05, 0]  # final_round_jitter=0.5 of it, no refit round
+        assert final == [0.0, 0.0, 0]  # unjittered, as for a given lighting, no refit round
         torch.testing.assert_close(last_sh, refit_lighting(image[None], mask[None], refinements[0].normals)[0])
         torch.testing.assert_close(est.normals, refinements[1].normals[0])
         torch.testing.assert_close(est.lighting, refinements[1].lighting[0])
         torch.testing.assert_close(est.depth, refinements[1].depth[0])
         assert "final round" in est.timings
         rounds.clear()
-        sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False, final_round_jitter=0.0, **NO_RELIEF),
+        sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False, final_round_jitter=0.5, **NO_RELIEF),
                            progress=False)
-        assert [r[1:] for r in rounds] == [(0.3, 0.05, 1), (0.0, 0.0, 0)]  # unjittered, as for a given lighting
+        assert [r[1:] for r in rounds] == [(0.3, 0.05, 1), (0.5 * 0.3, 0.5 * 0.05, 0)]  # that fraction of the jitter
         rounds.clear(), refinements.clear()
         off = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False, final_round=False, **NO_RELIEF),
                                  progress=False)
