@@ -1,5 +1,6 @@
-"""What the accuracy benchmarks write: their arguments and results, as one JSON file; and
-how sure a change between two variants on the same images is."""
+"""What the accuracy benchmarks write: their arguments and results, as one JSON file; how
+sure a change between two variants on the same images is; and the lightings their
+``--side`` options choose."""
 from __future__ import annotations
 
 import argparse
@@ -15,6 +16,22 @@ def write_results(args: argparse.Namespace, **results) -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, **results}, indent=2))
     print(f"wrote {args.out}")
+
+
+def side_lightings(parser: argparse.ArgumentParser, args: argparse.Namespace) -> list:
+    """The ``args.lights`` lightings of ``args.side`` after its first ``args.first_light``
+    (:func:`sfs_torch.datasets.scene_lightings` with ``args.light_seed`` and
+    ``args.exposure``); options that do not fit end the script through ``parser.error``."""
+    # imported here: openmp_waits.py imports this module before it sets OpenMP's variables
+    from sfs_torch.datasets import scene_lightings
+
+    if args.first_light < 0:
+        parser.error(f"--first-light must be >= 0, got {args.first_light}")
+    try:
+        return scene_lightings(args.first_light + args.lights, args.side, seed=args.light_seed,
+                               exposure=args.exposure)[args.first_light:]
+    except ValueError as error:
+        parser.error(f"--lights, --light-seed, --exposure: {error}")
 
 
 def paired_bootstrap(first: Sequence[float], second: Sequence[float], *, draws: int = 5000, level: float = 0.9,

@@ -67,7 +67,6 @@ import sfs_torch  # noqa: E402
 from sfs_torch.datasets import (  # noqa: E402
     DEGRADATIONS,
     SCENE_SIDES,
-    scene_lightings,
     scene_shapes,
     synthetic_scenes,
 )
@@ -93,7 +92,7 @@ from sfs_torch.relief_prior import (  # noqa: E402
 )
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
 
-from _results import write_results  # noqa: E402
+from _results import side_lightings, write_results  # noqa: E402
 
 SCALES = (0.6, 0.8, 1.0, 1.25, 1.6, 2.0)
 # every image's error at each of these depth scales, for a scale chosen once for all images
@@ -145,11 +144,7 @@ def main() -> None:
         parser.error("--converging refines the --hypotheses: give --hypotheses too")
     if args.lighting_prior is not None and not all(w >= 0 for w in args.lighting_prior):
         parser.error(f"--lighting-prior weights must be >= 0, got {args.lighting_prior}")
-    try:
-        lightings = scene_lightings(args.first_light + args.lights, args.side, seed=args.light_seed,
-                                    exposure=args.exposure)[args.first_light:]
-    except ValueError as error:
-        parser.error(f"--lights, --light-seed, --exposure: {error}")
+    lightings = side_lightings(parser, args)
     shapes = scene_shapes(args.shapes, args.side, sphere=False)
     cfg = resolve_config({"training": {"cache_forests": "never"}, **json.loads(args.call)})
     database = load_database(cfg.database, progress=False)

@@ -45,14 +45,13 @@ import sfs_torch  # noqa: E402
 from sfs_torch.datasets import (  # noqa: E402
     DEGRADATIONS,
     SCENE_SIDES,
-    scene_lightings,
     scene_shapes,
     synthetic_scenes,
 )
 from sfs_torch.metrics import lmse, normal_metrics  # noqa: E402
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
 
-from _results import paired_bootstrap, write_results  # noqa: E402
+from _results import paired_bootstrap, side_lightings, write_results  # noqa: E402
 
 # (label, overrides): each row adds to the one above it up to the learnt relief prior; then the default
 # (that prior without the relief scale) and the default given the true lighting
@@ -107,11 +106,7 @@ def main() -> None:
     labels = [label for label, _ in ABLATION] if args.ablation else [json.dumps(v) for v in variants]
     if args.first_shape < 0 or args.first_light < 0:
         parser.error("--first-shape and --first-light must be >= 0")
-    try:
-        lightings = scene_lightings(args.first_light + args.lights, args.side, seed=args.light_seed,
-                                    exposure=args.exposure)[args.first_light:]
-    except ValueError as error:
-        parser.error(f"--lights, --light-seed, --exposure: {error}")
+    lightings = side_lightings(parser, args)
     try:
         shapes = scene_shapes(args.first_shape + args.shapes, args.side, sphere=not args.no_sphere)
     except ValueError as error:

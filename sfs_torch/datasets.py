@@ -182,9 +182,10 @@ def scene_shapes(n: Optional[int], side: str = "test", database: DatabaseConfig 
     """``n`` shapes of one side of ``database``'s shapes.
 
     ``"test"`` and ``"validation"`` are the two halves of its evaluation split, ``n`` spread
-    over each (``None``: all of the half). ``"spare"`` is a larger tuning pool: the next ``n`` shapes the split would draw
-    for training after its ``n_shapes`` (by the same group weights), so neither its forests'
-    database nor, for the default database, the learnt relief prior has seen them.
+    over each (``None``: all of the half). ``"spare"`` is a larger tuning pool: the next
+    ``n`` shapes the split would draw for training after its ``n_shapes`` (by the same group
+    weights), so neither its forests' database nor, for the default database, the learnt
+    relief prior has seen them.
 
     With ``sphere=True`` a unit sphere comes first (the shape Eq. 10's silhouette prior is exact for).
 

@@ -21,6 +21,14 @@ def test_validation_side_options_are_refused_on_the_test_side(script, arguments)
     assert "for the tuning sides (validation, spare)" in done.stderr
 
 
+def test_bas_relief_refuses_a_negative_first_light():
+    # a negative start would slice the lightings from their end
+    done = subprocess.run([sys.executable, str(BENCHMARKS / "bas_relief.py"), "--first-light", "-1"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2
+    assert "--first-light must be >= 0, got -1" in done.stderr
+
+
 def test_bas_relief_refuses_a_negative_lighting_prior_weight():
     # a negative weight would reward improbable lightings: refused before any image is made
     done = subprocess.run([sys.executable, str(BENCHMARKS / "bas_relief.py"), "--lighting-prior", "0.3", "-1"],
