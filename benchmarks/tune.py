@@ -104,8 +104,8 @@ def main() -> None:
     args = parser.parse_args()
     variants = [overrides for _, overrides in ABLATION] if args.ablation else [json.loads(v) for v in args.variants]
     labels = [label for label, _ in ABLATION] if args.ablation else [json.dumps(v) for v in variants]
-    if args.first_shape < 0 or args.first_light < 0:
-        parser.error("--first-shape and --first-light must be >= 0")
+    if args.first_shape < 0:
+        parser.error(f"--first-shape must be >= 0, got {args.first_shape}")
     lightings = side_lightings(parser, args)
     try:
         shapes = scene_shapes(args.first_shape + args.shapes, args.side, sphere=not args.no_sphere)

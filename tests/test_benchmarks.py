@@ -78,12 +78,13 @@ def test_paired_bootstrap_refuses_unpaired_values():
 
 
 @pytest.mark.parametrize("arguments, message", [
-    (["--first-shape", "-1"], "--first-shape and --first-light must be >= 0"),
+    (["--first-shape", "-1"], "--first-shape must be >= 0, got -1"),
+    (["--first-light", "-1"], "--first-light must be >= 0, got -1"),
     (["--first-shape", "8", "--shapes", "3"], "--first-shape + --shapes: n must be an integer in [0, 10] on the "
                                                "validation side, got 11"),
     (["--side", "spare", "--shapes", "5000"], "on the spare side, got 5000"),
 ])
-def test_tune_refuses_shapes_the_side_does_not_have(arguments, message):
+def test_tune_refuses_shapes_and_lightings_the_side_does_not_have(arguments, message):
     done = subprocess.run([sys.executable, str(BENCHMARKS / "tune.py"), *arguments],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2
