@@ -1,6 +1,7 @@
 """What the accuracy benchmarks write: their arguments and results, as one JSON file; how
-sure a change between two variants on the same images is; and the lightings their
-``--side`` options choose."""
+sure a change between two variants on the same images is, and how far a ratio to the
+silhouette prior could move with the shapes drawn; and the lightings their ``--side``
+options choose."""
 from __future__ import annotations
 
 import argparse
@@ -53,3 +54,27 @@ def paired_bootstrap(first: Sequence[float], second: Sequence[float], *, draws: 
     means = (b - a)[picks].mean(axis=1)
     return {"median": float(np.median(b) - np.median(a)), "median_interval": np.percentile(medians, tails).tolist(),
             "mean": float((b - a).mean()), "mean_interval": np.percentile(means, tails).tolist()}
+
+
+def ratio_over_shapes(errors: Sequence[float], prior: Sequence[float], shapes: Sequence[str], *, draws: int = 5000,
+                      level: float = 0.9, seed: int = 0) -> list:
+    """The ``level`` percentile interval of ``median(errors) / median(prior)`` over ``draws``
+    resamples of the shapes: each draw takes as many shapes as there are, with replacement,
+    each with all of its images (one value per image in the three sequences, ``shapes``
+    naming each image's shape). Its width is what the choice of a few test shapes alone can
+    move the ratio by, apart from any change of the method.
+
+    Returns:
+        ``[low, high]``.
+    """
+    errors, prior = np.asarray(errors, dtype=float), np.asarray(prior, dtype=float)
+    if not (errors.shape == prior.shape == (len(shapes),)) or len(shapes) == 0:
+        raise ValueError(f"errors, prior and shapes must hold one value per image, alike, got {errors.shape}, "
+                         f"{prior.shape} and {len(shapes)}")
+    names = sorted(set(shapes))
+    images = [np.flatnonzero(np.asarray(shapes) == name) for name in names]
+    ratios = []
+    for picks in np.random.default_rng(seed).integers(0, len(names), size=(draws, len(names))):
+        rows = np.concatenate([images[i] for i in picks])
+        ratios.append(np.median(errors[rows]) / np.median(prior[rows]))
+    return np.percentile(ratios, [(1 - level) / 2 * 100, (1 + level) / 2 * 100]).tolist()

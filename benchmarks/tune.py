@@ -13,7 +13,10 @@ reporting an ablation of choices already made, never for making one. Each varian
 the first is compared with the first on the same images: the change of the median and of
 the mean error with their 90 % paired-bootstrap intervals (``_results.paired_bootstrap``;
 a few tenths of a degree are within them on 20-30 images), and the images better / worse
-by more than 1 deg.
+by more than 1 deg. Each variant's median over the silhouette prior's also gets the
+interval it spans when the shapes are drawn again, each with all its images
+(``_results.ratio_over_shapes``): on the test side's six shapes it is wide
+(docs/pipeline.md, "How much a figure moves with the machine and the shapes").
 
     python benchmarks/tune.py --variants '{}' '{"training": {"brightness_jitter": 0.1}}'
     python benchmarks/tune.py --degradation all --shapes 4 --lights 3 --variants '{}' ...
@@ -51,7 +54,7 @@ from sfs_torch.datasets import (  # noqa: E402
 from sfs_torch.metrics import lmse, normal_metrics  # noqa: E402
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
 
-from _results import paired_bootstrap, side_lightings, write_results  # noqa: E402
+from _results import paired_bootstrap, ratio_over_shapes, side_lightings, write_results  # noqa: E402
 
 # (label, overrides): each row adds to the one above it up to the learnt relief prior; then the default
 # (that prior without the relief scale) and the default given the true lighting
@@ -137,10 +140,14 @@ def main() -> None:
     print(f"{'prior':<8}{silhouette:>8.2f}{statistics.mean(r['silhouette'] for r in rows):>8.2f}"
           f"{'':>24}  the silhouette prior (Eq. 10)")
     summary = []
+    # a scene's name is "shape|lighting"
+    shape_of_row = [r["case"].split("|")[0] for r in rows]
     for i, overrides in enumerate(variants):
         errors = [r[f"error_{i}"] for r in rows]
         summary.append({"overrides": overrides, "median": statistics.median(errors), "mean": statistics.mean(errors),
                         "ratio_to_prior": statistics.median(errors) / silhouette,
+                        "ratio_interval_over_shapes": ratio_over_shapes(errors, [r["silhouette"] for r in rows],
+                                                                        shape_of_row),
                         "lmse": statistics.median(r[f"lmse_{i}"] for r in rows),
                         "worse_than_prior": sum(r[f"error_{i}"] > r["silhouette"] for r in rows),
                         "seconds": statistics.median(r[f"seconds_{i}"] for r in rows)})
@@ -149,6 +156,10 @@ def main() -> None:
               f"{s['seconds']:>8.1f}  {labels[i]}")
     print("median, mean: of the per-image median angular errors (deg); lMSE: median; "
           "worse: images on which the variant's error exceeds the silhouette prior's")
+    for i, s in enumerate(summary):
+        low, high = s["ratio_interval_over_shapes"]
+        print(f"{i} median over the prior's: {s['ratio_to_prior']:.2f}x (90 % over the {len(set(shape_of_row))} shapes "
+              f"drawn again with their images: {low:.2f}x .. {high:.2f}x)")
     first = [r["error_0"] for r in rows]
     for i in range(1, len(variants)):
         errors = [r[f"error_{i}"] for r in rows]

@@ -72,6 +72,35 @@ def test_paired_bootstrap_intervals_of_one_large_change():
     assert low == 0.0 and 1.0 <= high <= 2.0
 
 
+def _ratio_over_shapes():
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        from _results import ratio_over_shapes
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    return ratio_over_shapes
+
+
+def test_ratio_over_shapes_is_exact_when_every_shape_has_the_same_ratio():
+    prior = [8.0, 12.0, 20.0, 30.0, 10.0, 14.0]
+    out = _ratio_over_shapes()([0.5 * p for p in prior], prior, ["a", "a", "b", "b", "c", "c"], draws=300)
+    assert out == pytest.approx([0.5, 0.5])
+
+
+def test_ratio_over_shapes_spans_the_shapes_own_ratios():
+    # shape a at 0.25x its prior, shape b at 1x; a draw of both gives median 2.5 / 4
+    errors, prior, shapes = [1.0, 1.0, 4.0, 4.0], [4.0] * 4, ["a", "a", "b", "b"]
+    low, high = _ratio_over_shapes()(errors, prior, shapes, draws=2000)
+    assert (low, high) == (pytest.approx(0.25), pytest.approx(1.0))
+    low, high = _ratio_over_shapes()(errors, prior, shapes, draws=2000, level=0.2)
+    assert low == high == pytest.approx(0.625)
+
+
+def test_ratio_over_shapes_refuses_unmatched_values():
+    with pytest.raises(ValueError, match="one value per image"):
+        _ratio_over_shapes()([1.0, 2.0], [1.0, 2.0], ["a"])
+
+
 def test_paired_bootstrap_refuses_unpaired_values():
     with pytest.raises(ValueError, match="one value per image"):
         _paired_bootstrap()([1.0, 2.0], [1.0])
