@@ -45,19 +45,20 @@ def test_bas_relief_refuses_converging_without_hypotheses():
     assert "--converging refines the --hypotheses" in done.stderr
 
 
-def _paired_bootstrap():
+def _results():
+    """benchmarks/_results.py, which the scripts import from their own folder."""
     sys.path.insert(0, str(BENCHMARKS))
     try:
-        from _results import paired_bootstrap
+        import _results
     finally:
         sys.path.remove(str(BENCHMARKS))
-    return paired_bootstrap
+    return _results
 
 
 def test_paired_bootstrap_of_a_uniform_change_is_exact():
     # every resample moves by the same amount: the intervals shrink to the change itself
     first = [3.0, 7.5, 1.0, 12.0, 9.0]
-    out = _paired_bootstrap()(first, [x - 0.5 for x in first], draws=200)
+    out = _results().paired_bootstrap(first, [x - 0.5 for x in first], draws=200)
     assert out["median"] == pytest.approx(-0.5) and out["mean"] == pytest.approx(-0.5)
     assert out["median_interval"] == pytest.approx([-0.5, -0.5]) and out["mean_interval"] == pytest.approx([-0.5, -0.5])
 
@@ -66,44 +67,35 @@ def test_paired_bootstrap_intervals_of_one_large_change():
     # one image of ten 10 deg worse: the mean moves by 1, and a resample without it (about a third of them) by 0
     first = list(range(10))
     second = first[:9] + [19.0]
-    out = _paired_bootstrap()(first, second, draws=4000, level=0.5)
+    out = _results().paired_bootstrap(first, second, draws=4000, level=0.5)
     assert out["mean"] == pytest.approx(1.0) and out["median"] == 0.0
     low, high = out["mean_interval"]
     assert low == 0.0 and 1.0 <= high <= 2.0
 
 
-def _ratio_over_shapes():
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        from _results import ratio_over_shapes
-    finally:
-        sys.path.remove(str(BENCHMARKS))
-    return ratio_over_shapes
-
-
 def test_ratio_over_shapes_is_exact_when_every_shape_has_the_same_ratio():
     prior = [8.0, 12.0, 20.0, 30.0, 10.0, 14.0]
-    out = _ratio_over_shapes()([0.5 * p for p in prior], prior, ["a", "a", "b", "b", "c", "c"], draws=300)
+    out = _results().ratio_over_shapes([0.5 * p for p in prior], prior, ["a", "a", "b", "b", "c", "c"], draws=300)
     assert out == pytest.approx([0.5, 0.5])
 
 
 def test_ratio_over_shapes_spans_the_shapes_own_ratios():
     # shape a at 0.25x its prior, shape b at 1x; a draw of both gives median 2.5 / 4
     errors, prior, shapes = [1.0, 1.0, 4.0, 4.0], [4.0] * 4, ["a", "a", "b", "b"]
-    low, high = _ratio_over_shapes()(errors, prior, shapes, draws=2000)
+    low, high = _results().ratio_over_shapes(errors, prior, shapes, draws=2000)
     assert (low, high) == (pytest.approx(0.25), pytest.approx(1.0))
-    low, high = _ratio_over_shapes()(errors, prior, shapes, draws=2000, level=0.2)
+    low, high = _results().ratio_over_shapes(errors, prior, shapes, draws=2000, level=0.2)
     assert low == high == pytest.approx(0.625)
 
 
 def test_ratio_over_shapes_refuses_unmatched_values():
     with pytest.raises(ValueError, match="one value per image"):
-        _ratio_over_shapes()([1.0, 2.0], [1.0, 2.0], ["a"])
+        _results().ratio_over_shapes([1.0, 2.0], [1.0, 2.0], ["a"])
 
 
 def test_paired_bootstrap_refuses_unpaired_values():
     with pytest.raises(ValueError, match="one value per image"):
-        _paired_bootstrap()([1.0, 2.0], [1.0])
+        _results().paired_bootstrap([1.0, 2.0], [1.0])
 
 
 @pytest.mark.parametrize("arguments, message", [
