@@ -71,8 +71,8 @@ def ratio_over_shapes(errors: Sequence[float], prior: Sequence[float], shapes: S
     if not (errors.shape == prior.shape == (len(shapes),)) or len(shapes) == 0:
         raise ValueError(f"errors, prior and shapes must hold one value per image, alike, got {errors.shape}, "
                          f"{prior.shape} and {len(shapes)}")
-    names = sorted(set(shapes))
-    images = [np.flatnonzero(np.asarray(shapes) == name) for name in names]
+    names, shape_index = np.unique(np.asarray(shapes), return_inverse=True)
+    images = [np.flatnonzero(shape_index == i) for i in range(len(names))]
     ratios = []
     for picks in np.random.default_rng(seed).integers(0, len(names), size=(draws, len(names))):
         rows = np.concatenate([images[i] for i in picks])

@@ -136,18 +136,18 @@ def main() -> None:
     print(f"\n{len(rows)} images ({args.side} side), {args.degradation}, "
           f"{'known' if args.known else 'estimated'} lighting")
     print(f"{'variant':<8}{'median':>8}{'mean':>8}{'lMSE':>9}{'worse':>7}{'s/call':>8}  overrides")
-    silhouette = statistics.median(r["silhouette"] for r in rows)
-    print(f"{'prior':<8}{silhouette:>8.2f}{statistics.mean(r['silhouette'] for r in rows):>8.2f}"
-          f"{'':>24}  the silhouette prior (Eq. 10)")
+    prior = [r["silhouette"] for r in rows]
+    silhouette = statistics.median(prior)
+    print(f"{'prior':<8}{silhouette:>8.2f}{statistics.mean(prior):>8.2f}{'':>24}  the silhouette prior (Eq. 10)")
     summary = []
     # a scene's name is "shape|lighting"
     shape_of_row = [r["case"].split("|")[0] for r in rows]
+    n_shapes = len(set(shape_of_row))
     for i, overrides in enumerate(variants):
         errors = [r[f"error_{i}"] for r in rows]
         summary.append({"overrides": overrides, "median": statistics.median(errors), "mean": statistics.mean(errors),
                         "ratio_to_prior": statistics.median(errors) / silhouette,
-                        "ratio_interval_over_shapes": ratio_over_shapes(errors, [r["silhouette"] for r in rows],
-                                                                        shape_of_row),
+                        "ratio_interval_over_shapes": ratio_over_shapes(errors, prior, shape_of_row),
                         "lmse": statistics.median(r[f"lmse_{i}"] for r in rows),
                         "worse_than_prior": sum(r[f"error_{i}"] > r["silhouette"] for r in rows),
                         "seconds": statistics.median(r[f"seconds_{i}"] for r in rows)})
@@ -158,7 +158,7 @@ def main() -> None:
           "worse: images on which the variant's error exceeds the silhouette prior's")
     for i, s in enumerate(summary):
         low, high = s["ratio_interval_over_shapes"]
-        print(f"{i} median over the prior's: {s['ratio_to_prior']:.2f}x (90 % over the {len(set(shape_of_row))} shapes "
+        print(f"{i} median over the prior's: {s['ratio_to_prior']:.2f}x (90 % over the {n_shapes} shapes "
               f"drawn again with their images: {low:.2f}x .. {high:.2f}x)")
     first = [r["error_0"] for r in rows]
     for i in range(1, len(variants)):
