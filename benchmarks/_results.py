@@ -1,7 +1,7 @@
 """What the accuracy benchmarks write: their arguments and results, as one JSON file; how
-sure a change between two variants on the same images is, and how far a ratio to the
-silhouette prior could move with the shapes drawn; and the lightings their ``--side``
-options choose."""
+sure a change between two variants on the same images is, how far a ratio to the
+silhouette prior could move with the shapes drawn, and each shape's own median; and the
+lightings their ``--side`` options choose."""
 from __future__ import annotations
 
 import argparse
@@ -78,3 +78,18 @@ def ratio_over_shapes(errors: Sequence[float], prior: Sequence[float], shapes: S
         rows = np.concatenate([images[i] for i in picks])
         ratios.append(np.median(errors[rows]) / np.median(prior[rows]))
     return np.percentile(ratios, [(1 - level) / 2 * 100, (1 + level) / 2 * 100]).tolist()
+
+
+def median_per_shape(values: Sequence[float], shapes: Sequence[str]) -> dict:
+    """The median of ``values`` over each shape's images (one value per image, ``shapes``
+    naming each image's shape), the shapes in the order they first come.
+
+    Returns:
+        ``{shape: median}``.
+    """
+    if len(values) != len(shapes) or len(shapes) == 0:
+        raise ValueError(f"values and shapes must hold one entry per image, alike, got {len(values)} and {len(shapes)}")
+    grouped = {}
+    for value, shape in zip(values, shapes):
+        grouped.setdefault(shape, []).append(float(value))
+    return {shape: float(np.median(group)) for shape, group in grouped.items()}

@@ -16,7 +16,9 @@ a few tenths of a degree are within them on 20-30 images), and the images better
 by more than 1 deg. Each variant's median over the silhouette prior's also gets the
 interval it spans when the shapes are drawn again, each with all its images
 (``_results.ratio_over_shapes``): on the test side's six shapes it is wide
-(docs/pipeline.md, "How much a figure moves with the machine and the shapes").
+(docs/pipeline.md, "How much a figure moves with the machine and the shapes"). A table of
+each shape's median over its images, the prior's and each variant's, follows
+(``_results.median_per_shape``; in the JSON too).
 
     python benchmarks/tune.py --variants '{}' '{"training": {"brightness_jitter": 0.1}}'
     python benchmarks/tune.py --degradation all --shapes 4 --lights 3 --variants '{}' ...
@@ -54,7 +56,13 @@ from sfs_torch.datasets import (  # noqa: E402
 from sfs_torch.metrics import lmse, normal_metrics  # noqa: E402
 from sfs_torch.silhouette import coarse_normals  # noqa: E402
 
-from _results import paired_bootstrap, ratio_over_shapes, side_lightings, write_results  # noqa: E402
+from _results import (  # noqa: E402
+    median_per_shape,
+    paired_bootstrap,
+    ratio_over_shapes,
+    side_lightings,
+    write_results,
+)
 
 # (label, overrides): each row adds to the one above it up to the learnt relief prior; then the default
 # (that prior without the relief scale) and the default given the true lighting
@@ -148,6 +156,7 @@ def main() -> None:
         summary.append({"overrides": overrides, "median": statistics.median(errors), "mean": statistics.mean(errors),
                         "ratio_to_prior": statistics.median(errors) / silhouette,
                         "ratio_interval_over_shapes": ratio_over_shapes(errors, prior, shape_of_row),
+                        "median_per_shape": median_per_shape(errors, shape_of_row),
                         "lmse": statistics.median(r[f"lmse_{i}"] for r in rows),
                         "worse_than_prior": sum(r[f"error_{i}"] > r["silhouette"] for r in rows),
                         "seconds": statistics.median(r[f"seconds_{i}"] for r in rows)})
@@ -160,6 +169,13 @@ def main() -> None:
         low, high = s["ratio_interval_over_shapes"]
         print(f"{i} median over the prior's: {s['ratio_to_prior']:.2f}x (90 % over the {n_shapes} shapes "
               f"drawn again with their images: {low:.2f}x .. {high:.2f}x)")
+    prior_per_shape = median_per_shape(prior, shape_of_row)
+    if n_shapes > 1:
+        print(f"\n{'shape':<40}{'prior':>8}" + "".join(f"{i:>8}" for i in range(len(variants)))
+              + "  (median over each shape's images)")
+        for shape, value in prior_per_shape.items():
+            print(f"{shape:<40}{value:>8.2f}"
+                  + "".join(f"{entry['median_per_shape'][shape]:>8.2f}" for entry in summary))
     first = [r["error_0"] for r in rows]
     for i in range(1, len(variants)):
         errors = [r[f"error_{i}"] for r in rows]
@@ -171,7 +187,7 @@ def main() -> None:
         print(f"{i} against 0: median {change['median']:+.2f} (90 % paired bootstrap {low:+.2f} .. {high:+.2f}), "
               f"mean {change['mean']:+.2f} ({mean_low:+.2f} .. {mean_high:+.2f}); "
               f"better / worse by > 1 deg: {change['better']} / {change['worse']}")
-    write_results(args, silhouette=silhouette, summary=summary, rows=rows)
+    write_results(args, silhouette=silhouette, prior_per_shape=prior_per_shape, summary=summary, rows=rows)
 
 
 if __name__ == "__main__":

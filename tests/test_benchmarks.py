@@ -93,6 +93,17 @@ def test_ratio_over_shapes_refuses_unmatched_values():
         _results().ratio_over_shapes([1.0, 2.0], [1.0, 2.0], ["a"])
 
 
+def test_median_per_shape_takes_each_shapes_own_median_in_first_seen_order():
+    medians = _results().median_per_shape([4.0, 1.0, 10.0, 2.0, 30.0], ["b", "a", "b", "a", "b"])
+    assert list(medians) == ["b", "a"]
+    assert medians == {"b": 10.0, "a": 1.5}
+
+
+def test_median_per_shape_refuses_unmatched_values():
+    with pytest.raises(ValueError, match="one entry per image"):
+        _results().median_per_shape([1.0, 2.0], ["a"])
+
+
 def test_paired_bootstrap_refuses_unpaired_values():
     with pytest.raises(ValueError, match="one value per image"):
         _results().paired_bootstrap([1.0, 2.0], [1.0])
