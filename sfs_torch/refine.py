@@ -36,7 +36,9 @@ Both minimise, per image,
 - ``C`` are the rim pixels of the mask and ``c`` their silhouette normals (Eq. 10);
 - ``p ~ q`` are 4-neighbours both on the mask;
 - ``E_prior`` is :func:`sfs_torch.natural_lighting.lighting_prior_energy` (constant when
-  the lighting is held fixed).
+  the lighting is held fixed);
+- ``lambda_s`` is ``smoothness`` in the surface model and ``pixel_smoothness`` in the
+  pixel model.
 """
 from __future__ import annotations
 
@@ -81,7 +83,12 @@ class RefineConfig:
             noise of a real sensor an attached shadow reads slightly above 0).
         normal_weight: ``lambda_kappa``, pull towards the forest's normals.
         contour_weight: ``lambda_c``, pull of the rim normals towards the silhouette's.
-        smoothness: ``lambda_s``, pull of neighbouring normals towards each other.
+        smoothness: ``lambda_s``, pull of neighbouring normals towards each other, in the
+            surface model.
+        pixel_smoothness: ``lambda_s`` of the pixel model, in place of ``smoothness``: its
+            free normals follow the forest's, whose per-pixel noise the photometric term
+            does not see along each pixel's curve of equal shading (docs/refine.md,
+            "The pixel model's smoothness").
         lighting_weight: ``lambda_L``, pull of the lighting towards the natural-lighting prior.
         optimise_lighting: surface model only: fit the lighting too (``False``: held
             fixed; :func:`sfs_torch.estimate` holds a given lighting fixed by itself).
@@ -111,6 +118,7 @@ class RefineConfig:
     normal_weight: float = 0.2
     contour_weight: float = 0.05
     smoothness: float = 0.01
+    pixel_smoothness: float = 0.1
     lighting_weight: float = 0.01
     optimise_lighting: bool = True
     levels: int = 5
@@ -164,7 +172,8 @@ def check_refine_config(cfg: RefineConfig, prefix: str = "refine.") -> None:
     for name, minimum in (("iterations", 0), ("levels", 1)):
         if not is_integer(getattr(cfg, name), minimum):
             raise ValueError(f"{prefix}{name} must be an integer >= {minimum}, got {getattr(cfg, name)!r}")
-    for name in ("delta", "normal_weight", "contour_weight", "smoothness", "lighting_weight", "dark_level"):
+    for name in ("delta", "normal_weight", "contour_weight", "smoothness", "pixel_smoothness", "lighting_weight",
+                 "dark_level"):
         if not getattr(cfg, name) >= 0:
             raise ValueError(f"{prefix}{name} must be >= 0, got {getattr(cfg, name)}")
     if not cfg.delta > 0:
@@ -381,7 +390,7 @@ def refinement_loss(
         confidence: :math:`(B, 1, H, W)` per-pixel weights ``w`` of the normal prior.
         rim_normals: :math:`(B, 3, H, W)` target normals on the rim, 0 elsewhere (rim =
             non-zero).
-        config: weights, ``delta`` and ``dark_level``.
+        config: weights (``smoothness`` as ``lambda_s``), ``delta`` and ``dark_level``.
         lighting_prior: natural-lighting prior (``None``: the packaged one).
 
     Returns:
@@ -471,6 +480,8 @@ def refine_shape_and_lighting(
     check_refine_config(cfg)
     if cfg.model == "auto":
         cfg = replace(cfg, model="surface" if cfg.optimise_lighting else "pixel")
+    if cfg.model == "pixel":
+        cfg = replace(cfg, smoothness=cfg.pixel_smoothness)
     check_shape(image, "image", "B 3 H W")
     check_shape(normals, "normals", "B 3 H W")
     check_shape(lighting, "lighting", "B 3 9")

@@ -351,6 +351,27 @@ class TestRefineShapeAndLighting:
         pixel = refine_shape_and_lighting(image, mask, start, sh, config=RefineConfig(model="pixel"))
         assert _error(pixel.normals, normals, mask) < 0.5 * _error(start, normals, mask)
 
+    def test_pixel_smoothness_removes_per_pixel_noise_of_the_start(self):
+        # a start with independent noise per pixel, as the forest's: along each pixel's curve
+        # of equal shading only the smoothness term tells the noise from the shape
+        normals, mask = sphere(48, 20.0)
+        normals, mask = normals[None], mask[None]
+        sh = natural_lightings(0.8)["campus_sunset"][None]
+        image = render_sh(normals, sh).clamp(0, 1) * mask
+        noise = 0.15 * torch.randn(normals.shape, generator=torch.Generator().manual_seed(0))
+        start = torch.nn.functional.normalize(normals + noise, dim=1) * mask
+        default, without = (refine_shape_and_lighting(image, mask, start, sh, config=RefineConfig(
+            model="pixel", **options)) for options in ({}, {"pixel_smoothness": 0.0}))
+        assert _error(default.normals, normals, mask) < 0.75 * _error(without.normals, normals, mask)
+
+    @pytest.mark.parametrize("model, other", [("pixel", {"smoothness": 1.0}), ("surface", {"pixel_smoothness": 1.0})])
+    def test_each_model_reads_its_own_smoothness(self, scene, model, other):
+        _, mask, sh, image, start, _ = scene
+        cfg = RefineConfig(model=model, optimise_lighting=False, iterations=10)
+        a, b = (refine_shape_and_lighting(image, mask, start, sh, config=c)
+                for c in (cfg, dataclasses.replace(cfg, **other)))
+        assert torch.equal(a.normals, b.normals)
+
     def test_joint_refinement_lowers_normal_and_lighting_errors(self, scene):
         normals, mask, sh, image, start, start_sh = scene
         out = refine_shape_and_lighting(image, mask, start, start_sh, config=RefineConfig(model="surface", iterations=200))
@@ -480,6 +501,7 @@ class TestRefineShapeAndLighting:
         ({"when": "sometimes"}, "refine.when"), ({"iterations": -1}, "refine.iterations"),
         ({"levels": 0}, "refine.levels"), ({"delta": 0.0}, "refine.delta"),
         ({"normal_weight": -1.0}, "refine.normal_weight"), ({"model": "mesh"}, "refine.model"),
+        ({"pixel_smoothness": -0.1}, "refine.pixel_smoothness"),
     ])
     def test_bad_config(self, scene, bad, match):
         _, mask, sh, image, start, _ = scene
