@@ -27,7 +27,9 @@
    ``relief_slope_power``; orthographic only, optionally a second such round from the
    corrected surface, the two surfaces averaged, ``relief_rounds``; then, orthographic
    only, the joint refinement once more from the corrected surface, its height in units
-   of the image's side so that it converges, ``relief_refinements``);
+   of the image's side so that it converges, ``relief_refinements``); last, the estimated
+   normals refined per pixel under their lighting, as a given lighting's are
+   (``pixel_refinement``);
 7. optional integrability refinement (:mod:`sfs_torch.integrability`).
 """
 from __future__ import annotations
@@ -257,6 +259,14 @@ class PipelineConfig:
             first round's surface; each round more costs one forest and one refinement.
             Two rounds helped exact renders on both sides of the split and cost the
             realistic test images 0.6 deg of median (docs/pipeline.md).
+        pixel_refinement: with an estimated lighting, last: on the images not left at
+            the silhouette prior, the normals refined per pixel under the estimate's lighting
+            held fixed (the pixel model, as a given lighting's are, ``refine.pixel_smoothness``
+            included), pulled towards the surface's normals by the final round's confidence.
+            The integrable surface cannot follow the image's local detail; per pixel the
+            normals can. ``Estimate.depth`` stays the surface's (``integrate=l2`` integrates
+            the refined normals). One more refinement, per pixel (measured in
+            docs/pipeline.md).
         relief_prior_weights: the learnt prior's weights: ``None`` for those that ship
             with the package, or the path of an ``.npz`` that
             ``tools/build_relief_prior.py --out`` wrote (a prior trained otherwise).
@@ -295,6 +305,7 @@ class PipelineConfig:
     relief_refinement_unit: float = 1.0
     relief_refinement_prior: bool = False
     relief_rounds: int = 1
+    pixel_refinement: bool = True
     normal_rotation: str = "centroid"
     conv_samples_per_tree: int = 1
 
@@ -778,6 +789,7 @@ def estimate(
                 with timer("relief rounds"):
                     depth, normals, sh = _relief_rounds(image_b, mask_b, (depth, normals, sh, confidence), corrected,
                                                         per_image, db, cfg, timer)
+        back = torch.zeros_like(skip)  # the images the check after the refinement returns to the prior
         if cfg.keep_prior and not given and depth is not None:
             with timer("prior check after refinement"):
                 back = _prior_explains_better(image_b, mask_b, normals, ~skip, focal, principal_point, cfg)
@@ -792,6 +804,11 @@ def estimate(
         if cfg.relief_refinements > 0 and focal is None and bool(corrected.any()):
             with timer("refinement after the relief prior"):
                 depth, normals, sh = _refined_relief(image_b, mask_b, (depth, normals, sh, confidence), corrected, cfg)
+        refined = ~(skip | back)  # the images not at the silhouette prior
+        if cfg.pixel_refinement and not given and depth is not None and bool(refined.any()):
+            with timer("pixel refinement"):
+                normals = _pixel_refined(image_b, mask_b, normals, sh, confidence, refined, cfg, focal,
+                                         principal_point)
     if integrate != "none":
         with timer(f"integrate ({integrate})"):
             integrator = _integrator(cfg.integrate, integrate, focal, principal_point)
@@ -833,6 +850,22 @@ def _refine(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, confidence
             depth = torch.zeros_like(mask, dtype=image.dtype) if depth is None else depth
             depth[items] = refined.depth
     return depth, normals, sh
+
+
+def _pixel_refined(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, confidence: Tensor, among: Tensor,
+                   cfg: PipelineConfig, focal: Optional[float], principal_point: Optional[tuple]) -> Tensor:
+    """The batch's ``normals`` with its images in ``among`` (B,) bool refined per pixel under
+    their lighting held fixed (the pixel model, as a given lighting's are), pulled towards the
+    normals they have by ``confidence``."""
+    items = among.nonzero()[:, 0]
+    if len(items) == 0:
+        return normals
+    normals = normals.clone()
+    normals[items] = refine_shape_and_lighting(
+        image[items], mask[items], normals[items], sh[items], confidence=confidence[items], focal=focal,
+        principal_point=principal_point, config=replace(cfg.refine, model="pixel"), silhouette=cfg.silhouette,
+    ).normals
+    return normals
 
 
 def _final_round(image: Tensor, mask: Tensor, normals: Tensor, rows: Tensor, db: GeometryDatabase,

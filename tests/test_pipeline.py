@@ -15,7 +15,7 @@ from sfs_torch.camera import centroid_rotation
 from sfs_torch.integrability import depth_to_normals
 from sfs_torch.pipeline import PipelineConfig, resolve_config, training_set
 from sfs_torch.reflectance_map import refit_lighting
-from sfs_torch.refine import rim_pixels
+from sfs_torch.refine import RefineConfig, photometric_residual, refine_shape_and_lighting, rim_pixels
 from sfs_torch.relief_prior import (ReliefNet, apply_relief, load_relief_net, predict_relief, relief_depth,
                                     save_relief_net)
 from sfs_torch.silhouette import coarse_normals
@@ -322,9 +322,11 @@ class TestKeepPrior:
         monkeypatch.setattr(pipeline, "_better_prior", first_only)
         # and no return to the prior after the refinement, which would also take the second sphere back
         monkeypatch.setattr(pipeline, "_prior_explains_better", lambda image, *a: torch.zeros(len(image), dtype=torch.bool))
-        both = sfs_torch.estimate(torch.stack([image, image]), torch.stack([mask, mask]), config=TINY, progress=False)
+        # without the pixel refinement, whose normals are no longer the surface's
+        config = dict(TINY, pixel_refinement=False)
+        both = sfs_torch.estimate(torch.stack([image, image]), torch.stack([mask, mask]), config=config, progress=False)
         monkeypatch.undo()
-        forest = sfs_torch.estimate(image, mask, config=dict(TINY, keep_prior=False), progress=False)
+        forest = sfs_torch.estimate(image, mask, config=dict(config, keep_prior=False), progress=False)
         assert torch.allclose(both.normals[0], coarse_normals(mask[None])[0], atol=1e-6)
         assert float(normal_metrics(both.normals[1:], forest.normals[None], mask[None]).median[0]) < 0.5
         assert float(lmse(both.lighting[1:], forest.lighting[None])[0]) < 1e-5
@@ -352,8 +354,9 @@ class TestKeepPrior:
             return depth, torch.nn.functional.normalize(coarse + wave, dim=1) * mask, light
 
         monkeypatch.setattr(pipeline, "_refine", bent)
-        # without the final round, which would start again from a forest and undo the bend
-        config = dict(TINY, final_round=False)
+        # without the final round, which would start again from a forest and undo the bend, and
+        # without the pixel refinement, which would smooth it
+        config = dict(TINY, final_round=False, pixel_refinement=False)
         est = sfs_torch.estimate(image, mask, config=config, progress=False)
         assert torch.allclose(est.normals, coarse[0], atol=1e-6)
         assert torch.allclose(est.lighting, refit_lighting(image[None], mask[None], coarse)[0], atol=1e-5)
@@ -432,10 +435,11 @@ class TestPriorCheckTie:
         assert not back and calls == []
 
 
-NO_RELIEF = {"relief_scale": 1.0, "relief_slope_power": 0, "relief_prior_passes": 0}  # the refined surface as it is
+# the refined surface as it is (and its normals, not refined per pixel after it)
+NO_RELIEF = {"relief_scale": 1.0, "relief_slope_power": 0, "relief_prior_passes": 0, "pixel_refinement": False}
 DEEPER = {"relief_scale": 1.5, "relief_slope_power": 0, "relief_prior_passes": 0}
-# the relief stage's own surface: without the refinement after it (TestReliefRefinements)
-RELIEF_STAGE = dict(TINY, keep_prior=False, relief_refinements=0)
+# the relief stage's own surface: without the refinements after it (TestReliefRefinements, TestPixelRefinement)
+RELIEF_STAGE = dict(TINY, keep_prior=False, relief_refinements=0, pixel_refinement=False)
 
 
 class TestFinalRound:
@@ -658,7 +662,7 @@ class TestReliefRefinements:
     @pytest.mark.parametrize("prior_after", [False, True])
     def test_the_refinement_starts_from_the_corrected_surface_in_image_sides(self, scene, monkeypatch, prior_after):
         _, mask, _, image = scene
-        config = dict(TINY, keep_prior=False)
+        config = dict(TINY, keep_prior=False, pixel_refinement=False)
         without = sfs_torch.estimate(image, mask, config=RELIEF_STAGE, progress=False)
         corrected, refinements = [], []
         scaled_relief, refine = pipeline._scaled_relief, pipeline._refine
@@ -710,6 +714,37 @@ class TestReliefRefinements:
         torch.testing.assert_close(checked[0][0], without.normals)
         torch.testing.assert_close(est.normals, coarse_normals(mask[None])[0] * mask)
         assert "relief scale and prior" in est.timings and "refinement after the relief prior" not in est.timings
+
+
+class TestPixelRefinement:
+    def test_the_estimate_is_refined_per_pixel_under_its_own_lighting(self, scene):
+        # keep_prior=false: the sphere's prior would be kept, and a kept prior is not refined
+        _, mask, _, image = scene
+        config = dict(TINY, keep_prior=False)
+        off = sfs_torch.estimate(image, mask, config=dict(config, pixel_refinement=False), progress=False)
+        on = sfs_torch.estimate(image, mask, config=config, progress=False)  # on by default
+        expected = refine_shape_and_lighting(image[None], mask[None], off.normals[None], off.lighting[None],
+                                             confidence=off.confidence[None], config=RefineConfig(model="pixel"))
+        torch.testing.assert_close(on.normals, expected.normals[0])
+        assert torch.equal(on.lighting, off.lighting) and torch.equal(on.depth, off.depth)
+        assert torch.equal(on.confidence, off.confidence)
+        # it fits the image under the estimate's lighting closer than the surface does
+        residual = [float(photometric_residual(e.normals[None], e.lighting[None], image[None], mask[None])[0])
+                    for e in (on, off)]
+        assert residual[0] < 0.8 * residual[1]
+        assert "pixel refinement" in on.timings and "pixel refinement" not in off.timings
+
+    def test_an_image_at_its_silhouette_prior_stays_there(self, scene):
+        _, mask, _, image = scene
+        est = sfs_torch.estimate(image, mask, config=TINY, progress=False)  # the sphere keeps its prior
+        torch.testing.assert_close(est.normals, coarse_normals(mask[None])[0] * mask)
+        assert "pixel refinement" not in est.timings
+
+    def test_a_given_lighting_is_refined_once(self, scene):
+        _, mask, sh, image = scene
+        on, off = (sfs_torch.estimate(image, mask, lighting=sh, config=dict(TINY, pixel_refinement=flag),
+                                      progress=False) for flag in (True, False))
+        assert torch.equal(on.normals, off.normals) and "pixel refinement" not in on.timings
 
 
 @pytest.mark.parametrize("option, stage", [({"relief_rounds": 2}, "relief rounds"),
