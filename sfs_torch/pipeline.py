@@ -858,8 +858,6 @@ def _pixel_refined(image: Tensor, mask: Tensor, normals: Tensor, sh: Tensor, con
     their lighting held fixed (the pixel model, as a given lighting's are), pulled towards the
     normals they have by ``confidence``."""
     items = among.nonzero()[:, 0]
-    if len(items) == 0:
-        return normals
     normals = normals.clone()
     normals[items] = refine_shape_and_lighting(
         image[items], mask[items], normals[items], sh[items], confidence=confidence[items], focal=focal,
